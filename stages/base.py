@@ -1,0 +1,44 @@
+"""The stage contract: a pure core plus declared parameters.
+
+A stage is a :class:`StageSpec`:
+
+- ``params``: its declared parameters (``gaitflow.params.ParamSet``);
+- ``init(params) -> state``: the explicit initial state (a frozen dataclass, or None for a
+  stateless stage);
+- ``step(state, inputs) -> (state, outputs)``: the core. ``inputs`` maps stream name to the
+  decoded message of this frame (the joined primary inputs) and, for side inputs, to the
+  latest message of that stream for the camera (or is absent). ``outputs`` is a list of
+  messages to publish, in order;
+- ``finish(state) -> (state, outputs)``: optional, called at shutdown to flush.
+
+No I/O, no bus, no globals in a core: the bus adapter (``gaitflow.stages.runtime``) and the
+in-process runner (``gaitflow.stages.inline``) both drive the same spec, so they give
+identical results. Which streams a stage reads and writes is not declared here but in the
+pipeline description, ``deploy/pipeline.yaml`` (see ``gaitflow.stages.graph``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from gaitflow.schemas import Message
+
+from gaitflow.params import ParamSet
+
+Inputs = Mapping[str, Message]
+StepResult = tuple[Any, list[Message]]
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """A stage: declared parameters and its pure core functions."""
+
+    name: str
+    params: ParamSet
+    init: Callable[[dict[str, Any]], Any]
+    step: Callable[[Any, Inputs], StepResult]
+    finish: Callable[[Any], StepResult] | None = None
+    stateful: bool = False
+    doc: str = ""
