@@ -1,0 +1,23 @@
+"""The Zenoh bus: configuration, key scheme, sessions, and an in-memory fake.
+
+``Bus`` (real Zenoh) and ``FakeBus`` (in memory, for adapter tests) share one interface:
+
+- ``publisher(key, block=True) -> Publisher`` with ``put(payload: bytes)``;
+- ``put(key, payload)``;
+- ``subscribe(selector, callback) -> handle`` with ``callback(key: str, payload: bytes)``
+  and ``handle.undeclare()``;
+- ``liveliness_token(key)``;
+- ``close()``.
+"""
+
+from gaitflow.bus.config import DEFAULT_ROUTER, BusConfig
+from gaitflow.bus.keys import liveliness_key, parse_key, stream_key, stream_selector
+
+__all__ = [
+    "DEFAULT_ROUTER",
+    "BusConfig",
+    "liveliness_key",
+    "parse_key",
+    "stream_key",
+    "stream_selector",
+]
