@@ -19,7 +19,7 @@ pipeline description, ``deploy/pipeline.yaml`` (see ``gaitflow.stages.graph``).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,4 +41,20 @@ class StageSpec:
     step: Callable[[Any, Inputs], StepResult]
     finish: Callable[[Any], StepResult] | None = None
     stateful: bool = False
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """A source stage (grab): no inputs; yields frames.
+
+    ``open(params)`` returns an iterator; each item is the list of messages of one camera
+    frame (for the simulator: a ``RawFrame`` and its ``GroundTruth``), in capture order.
+    Headers carry capture times, so the runtime can pace publication at the original rate
+    (``rate == "1"``) or publish as fast as the pipeline accepts (``rate == "max"``).
+    """
+
+    name: str
+    params: ParamSet
+    open: Callable[[dict[str, Any]], Iterator[list[Message]]]
     doc: str = ""
