@@ -24,7 +24,7 @@ def _cell(v: Any) -> str:
 def format_table(title: str, columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """A plain-text table with a title line."""
     cells = [[_cell(v) for v in r] for r in rows]
-    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(columns)]
+    widths = [max([len(c), *(len(r[i]) for r in cells)]) for i, c in enumerate(columns)]
     line = "  ".join(c.ljust(w) for c, w in zip(columns, widths, strict=True))
     out = [title, line, "  ".join("-" * w for w in widths)]
     out += ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)) for r in cells]

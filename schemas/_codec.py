@@ -14,6 +14,8 @@ a message, and :func:`decode` reads the arrays straight out of the payload witho
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import struct
 import time
 from collections.abc import Mapping
@@ -27,6 +29,8 @@ from gaitflow.errors import SchemaError, SchemaVersionError
 
 HEADER_KEYS = ("schema", "version", "camera", "trial", "frame", "capture_ns", "publish_ns", "last")
 _BIN32 = 0xC6
+_DTYPE_STR = re.compile(r"[<>|][biuf][1248]")
+_BIN_LEN = {0xC4: ">B", 0xC5: ">H", _BIN32: ">I"}
 _INT_TYPES = (int,)
 
 
@@ -266,26 +270,36 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
         if not (isinstance(d, list) and len(d) == 3 and isinstance(d[0], str)):
             raise SchemaError(stream, "descriptors", f"malformed descriptor {d!r}")
         name, dtype, shape = d
-        if offset + 5 > len(buf) or buf[offset] != _BIN32:
+        # We write bin32; other msgpack writers pick the smallest bin type, accept those too.
+        lenfmt = _BIN_LEN.get(buf[offset]) if offset < len(buf) else None
+        if lenfmt is None or offset + 1 + struct.calcsize(lenfmt) > len(buf):
             raise SchemaError(stream, name, "array bytes missing or truncated")
-        (nbytes,) = struct.unpack_from(">I", buf, offset + 1)
-        offset += 5
+        (nbytes,) = struct.unpack_from(lenfmt, buf, offset + 1)
+        offset += 1 + struct.calcsize(lenfmt)
         if offset + nbytes > len(buf):
             raise SchemaError(stream, name, "array bytes truncated")
+        # Only plain numeric dtypes in numpy's ``dtype.str`` form (what encode writes), and
+        # the size check in Python ints: np.prod would overflow on hostile shapes.
+        if not (isinstance(dtype, str) and _DTYPE_STR.fullmatch(dtype)):
+            raise SchemaError(stream, name, f"unsupported dtype {dtype!r}")
+        if not (
+            isinstance(shape, list)
+            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+        ):
+            raise SchemaError(stream, name, f"bad shape {shape!r}")
         try:
             dt = np.dtype(dtype)
-            shp = tuple(int(s) for s in shape)
-        except (TypeError, ValueError) as exc:
-            raise SchemaError(stream, name, f"bad dtype or shape {dtype!r} {shape!r}") from exc
-        if (
-            dt.hasobject
-            or int(np.prod(shp, dtype=np.int64)) * dt.itemsize != nbytes
-            or min(shp, default=0) < 0
-        ):
+        except TypeError as exc:
+            raise SchemaError(stream, name, f"unsupported dtype {dtype!r}") from exc
+        shp = tuple(shape)
+        if math.prod(shp) * dt.itemsize != nbytes:
             raise SchemaError(stream, name, f"{nbytes} bytes do not hold {dtype} {list(shp)}")
-        arrays[name] = np.frombuffer(
-            buf, dtype=dt, count=nbytes // dt.itemsize if dt.itemsize else 0, offset=offset
-        ).reshape(shp)
+        try:
+            arrays[name] = np.frombuffer(
+                buf, dtype=dt, count=nbytes // dt.itemsize, offset=offset
+            ).reshape(shp)
+        except ValueError as exc:  # e.g. a zero-size shape with an axis beyond numpy's limit
+            raise SchemaError(stream, name, f"bad shape {list(shp)}: {exc}") from exc
         offset += nbytes
     kwargs: dict[str, Any] = {}
     for f in _fields(cls):

@@ -28,3 +28,7 @@ class Blobs(Message):
     threshold: float = value_field(float, meaning="e_d: IR threshold used for this frame")
     iterations: int = value_field(int, 0, "Alg. 1 iterations until convergence")
     method: str = value_field(str, "adaptive", "adaptive (Alg. 1) or static threshold")
+    status: str = value_field(
+        str, "ok", "ok, empty (no blob) or too-many (more than max_blobs candidates)"
+    )
+    rejected: int = value_field(int, 0, "components rejected as too wide to be a marker")

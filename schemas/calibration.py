@@ -47,6 +47,12 @@ class CalibrationRecord(Message):
     w: float = value_field(float, float("nan"), "initial IR threshold w")
     r_b: float = value_field(float, float("nan"), "blob base radius r_b, px")
     length_mm: float = value_field(float, float("nan"), "walking line length L, mm")
+    camera: dict = value_field(dict, {}, "depth intrinsics used (camera.json form)")
+    tilt_deg: float = value_field(float, float("nan"), "optical axis elevation above floor, deg")
+    pan_deg: float = value_field(float, float("nan"), "walking line angle off image X, deg")
+    offset_mm: float = value_field(float, float("nan"), "quad centre offset from optical axis")
+    plane_rms_mm: float = value_field(float, float("nan"), "floor markers' rms plane residual")
+    message: str = value_field(str, "", "a human-readable note on the outcome")
 
 
 @register

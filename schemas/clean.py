@@ -24,3 +24,6 @@ class CleanFrame(Message):
     depth: np.ndarray = array_field("uint16", (None, None), "depth in mm, 0 = invalid")
     mask: np.ndarray = array_field("uint8", (None, None), "1 = masked interfering reflector")
     interferers: int = value_field(int, 0, "number of tracked interfering reflectors")
+    camera: dict = value_field(
+        dict, {}, "depth intrinsics (camera.json form) from the calibration record; {} = none"
+    )

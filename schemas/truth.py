@@ -27,3 +27,10 @@ class GroundTruth(Message):
     knee_flexion: np.ndarray = array_field("float64", (2,), "(L, R) deg")
     time_s: float = value_field(float, 0.0, "seconds since the trial's first frame")
     events: list = value_field(list, [], "[side, kind, time_s] events in this frame")
+    knee_flexion_ref: list = value_field(
+        list, [], "(L, R) source Plug-in Gait knee flexion deg, NaN where absent"
+    )
+    pass_name: str = value_field(str, "", "walk part: out, turn, back; '' for other trials")
+    visible_fraction: list = value_field(
+        list, [], "per marker, fraction of its image footprint not hidden (0..1)"
+    )

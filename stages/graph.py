@@ -4,6 +4,10 @@ The launcher, the in-process runner, the deploy generators and the docs all read
 description. A node names its stage module (which exposes ``SPEC``), the streams it joins
 per frame (``inputs``), the latest-value streams it needs (``side_inputs``, each with the
 trial kinds that need it), its ``outputs``, its machine ``role`` and ``replicas``.
+
+Optional ``topics`` / ``input_topics`` map a stream to the key segment a node publishes /
+reads it under (default: the stream name). They let test and benchmark graphs chain
+pass-through stages (relay -> relay) without a stream having two producers.
 """
 
 from __future__ import annotations
@@ -38,6 +42,16 @@ class Node:
     replicas: int = 1
     optional_roles: tuple[str, ...] = ()
     params: dict[str, Any] = field(default_factory=dict)
+    topics: dict[str, str] = field(default_factory=dict)
+    input_topics: dict[str, str] = field(default_factory=dict)
+
+    def out_topic(self, stream: str) -> str:
+        """The key segment this node publishes ``stream`` under."""
+        return self.topics.get(stream, stream)
+
+    def in_topic(self, stream: str) -> str:
+        """The key segment this node reads ``stream`` from."""
+        return self.input_topics.get(stream, stream)
 
     def spec(self) -> StageSpec:
         """Import the stage module and return its ``SPEC``."""
@@ -66,8 +80,8 @@ class Graph:
         raise ConfigError(f"{self.source}: no stage named {name!r}")
 
     def producers(self) -> dict[str, str]:
-        """Stream name -> name of the stage that publishes it."""
-        return {s: n.name for n in self.nodes for s in n.outputs}
+        """Stream name (or remapped topic) -> name of the stage that publishes it."""
+        return {n.out_topic(s): n.name for n in self.nodes for s in n.outputs}
 
     def order(self) -> list[Node]:
         """Nodes in topological order (producers before consumers)."""
@@ -81,8 +95,8 @@ class Graph:
             if n.name in path:
                 raise ConfigError(f"{self.source}: cycle through {' -> '.join((*path, n.name))}")
             for s in (*n.inputs, *n.side_inputs):
-                if s in prod:
-                    visit(self.node(prod[s]), (*path, n.name))
+                if n.in_topic(s) in prod:
+                    visit(self.node(prod[n.in_topic(s)]), (*path, n.name))
             seen.add(n.name)
             done.append(n)
 
@@ -97,6 +111,16 @@ def _as_tuple(v: Any, where: str) -> tuple[str, ...]:
     if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
         raise ConfigError(f"{where}: expected a list of names, got {v!r}")
     return tuple(v)
+
+
+def _as_topics(v: Any, where: str) -> dict[str, str]:
+    if v is None:
+        return {}
+    if not isinstance(v, dict) or not all(
+        isinstance(k, str) and isinstance(x, str) for k, x in v.items()
+    ):
+        raise ConfigError(f"{where}: expected a mapping stream -> key segment, got {v!r}")
+    return dict(v)
 
 
 def parse(doc: Any, source: str = "pipeline.yaml") -> Graph:
@@ -133,6 +157,8 @@ def parse(doc: Any, source: str = "pipeline.yaml") -> Graph:
             replicas=int(s.get("replicas", 1)),
             optional_roles=_as_tuple(s.get("optional_roles"), f"{where}.optional_roles"),
             params=dict(s.get("params") or {}),
+            topics=_as_topics(s.get("topics"), f"{where}.topics"),
+            input_topics=_as_topics(s.get("input_topics"), f"{where}.input_topics"),
         )
         if node.role not in ROLES:
             raise ConfigError(f"{where}: role {node.role!r} is not one of {ROLES}")
@@ -149,7 +175,7 @@ def parse(doc: Any, source: str = "pipeline.yaml") -> Graph:
     graph = Graph(site=str(doc.get("site", "clinic")), nodes=tuple(nodes), source=source)
     prod: dict[str, str] = {}
     for n in graph.nodes:
-        for s in n.outputs:
+        for s in map(n.out_topic, n.outputs):
             if s in prod:
                 raise ConfigError(f"{source}: stream {s!r} published by {prod[s]} and {n.name}")
             prod[s] = n.name

@@ -1,0 +1,567 @@
+"""``gaitflow bench gait``: gait figures on simulated sessions beside the paper's.
+
+For each bundled trial (or ``--trials``) a session is simulated (``gaitflow.sim``) and its
+walking trial analysed; the figures are scored against the simulator's ground truth, which
+is used ONLY here, never by a stage. Two levels (``--level``):
+
+- ``pipeline`` (default): the whole graph in one process (``stages/inline.py``): calibrate,
+  clean, detect, locate, model, label, gait, from rendered IR and depth frames;
+- ``markers``: the gait stage alone, fed with the true marker trajectories plus Gaussian
+  noise (``--noise-mm``), the true floor plane and walking line; isolates the gait analysis
+  from the motion capture (an upper bound for the gait part).
+
+Figures (paper's values beside them where it gives one):
+
+- labelling accuracy: fraction of (frame, marker) pairs visible in the truth that were
+  labelled with the right name (within ``LABEL_TOL_PX`` of the true centre), pipeline only;
+- knee-flexion RMSE per side against the simulator's truth (same markers, same formula) and
+  against the source trial's Plug-in Gait knee angle (the paper's Vicon comparison);
+- heel-strike and toe-off timing error (mean absolute, ms), miss and false rates: a truth
+  event is matched to the nearest detected event of the same side and kind within
+  ``MATCH_S``; a detected event is false when nothing matches it and it lies inside the span
+  of the labelled events of its pass (the sources label only some of their events);
+- mean % error of step length, stride length, stance and swing: each truth step or stride
+  is matched to the detected one with the same heel strike(s) (within ``MATCH_S``) and
+  |detected - true| / true is averaged over all matched ones (Table IV reports mean % errors
+  against manually keyed ground truth).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from gaitflow.benchutil import add_json_flag, emit, format_table
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+
+MATCH_S = 0.15
+LABEL_TOL_PX = 5.0
+GOALS = {
+    "labelling_pct": 99.5,
+    "knee_rmse_deg": 2.5,
+    "knee_rmse_worst_deg": 4.0,
+    "event_mae_ms": 33.0,
+    "length_err_pct": 1.0,
+}
+PAPER = {
+    "step_err_pct": 0.98,
+    "stride_err_pct": 1.08,
+    "stance_err_pct": 1.73,
+    "swing_err_pct": 1.09,
+    "knee_rmse_vicon_max_deg": 6.0,
+    "detected_pct": 98.08,
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# scoring (pure)
+
+
+def match_events(
+    truth: Sequence[Mapping[str, Any]],
+    detected: Sequence[Mapping[str, Any]],
+    passes: Sequence[Mapping[str, Any]] = (),
+) -> dict[str, Any]:
+    """Match detected events to truth events; errors (s) and miss/false counts per kind.
+
+    truth : ``{"time_s", "side", "kind"}`` with kind FS/FO or heel_strike/toe_off and an
+        optional ``"pass"``; detected : results.md events.
+    """
+    kinds = {"FS": "heel_strike", "FO": "toe_off"}
+    out: dict[str, Any] = {}
+    for kind in ("heel_strike", "toe_off"):
+        tr = [e for e in truth if kinds.get(e["kind"], e["kind"]) == kind]
+        det = [e for e in detected if e["kind"] == kind]
+        used: set[int] = set()
+        errs: list[float] = []
+        miss = 0
+        for e in sorted(tr, key=lambda x: x["time_s"]):
+            best, bi = MATCH_S, -1
+            for i, d in enumerate(det):
+                if i in used or d["side"] != e["side"]:
+                    continue
+                err = abs(d["time_s"] - e["time_s"])
+                if err <= best:
+                    best, bi = err, i
+            if bi < 0:
+                miss += 1
+            else:
+                used.add(bi)
+                errs.append(det[bi]["time_s"] - e["time_s"])
+        spans = []
+        for name in {e.get("pass", "") for e in tr}:
+            ts = [e["time_s"] for e in truth if e.get("pass", "") == name]
+            if ts:
+                spans.append((min(ts) - MATCH_S, max(ts) + MATCH_S))
+        false = sum(
+            1
+            for i, d in enumerate(det)
+            if i not in used and any(a <= d["time_s"] <= b for a, b in spans)
+        )
+        out[kind] = {"errors_s": errs, "n_truth": len(tr), "miss": miss, "false": false}
+    return out
+
+
+def knee_rmse(
+    t_frames: np.ndarray,
+    truth_deg: np.ndarray,
+    knee_time_s: Sequence[float | None],
+    knee_deg: Sequence[float | None],
+) -> float:
+    """RMSE (deg) between truth at frame times and the results curve interpolated there.
+
+    Frames where either is unknown are skipped. truth_deg : (F,). Returns NaN if none left.
+    """
+    kt = np.array([np.nan if v is None else v for v in knee_time_s], dtype=float)
+    kd = np.array([np.nan if v is None else v for v in knee_deg], dtype=float)
+    ok = np.isfinite(kt) & np.isfinite(kd)
+    if ok.sum() < 2:
+        return float("nan")
+    est = np.interp(t_frames, kt[ok], kd[ok], left=np.nan, right=np.nan)
+    # a gap in the curve (NaN) must not be bridged by interpolation
+    nan_t = kt[np.isfinite(kt) & ~np.isfinite(kd)]
+    if nan_t.size:
+        step = np.median(np.diff(kt[np.isfinite(kt)])) if np.isfinite(kt).sum() > 1 else 0.01
+        near = np.min(np.abs(t_frames[:, None] - nan_t[None, :]), axis=1) < step
+        est[near] = np.nan
+    m = np.isfinite(est) & np.isfinite(truth_deg)
+    if not m.any():
+        return float("nan")
+    return float(np.sqrt(np.mean((est[m] - truth_deg[m]) ** 2)))
+
+
+def pct_err(est: Sequence[float | None], true: float) -> float:
+    """|mean(est) - true| / true in %, NaN when either is unknown."""
+    vals = [v for v in est if v is not None and np.isfinite(v)]
+    if not vals or not np.isfinite(true) or true == 0:
+        return float("nan")
+    return float(abs(np.mean(vals) - true) / abs(true) * 100.0)
+
+
+def matched_errors(
+    truth_st: Mapping[str, Any], cycles: Sequence[Mapping[str, Any]]
+) -> dict[str, list[float]]:
+    """% errors of step and stride length, stance and swing, matched stride by stride.
+
+    truth_st : the simulator's ``spatiotemporal`` (``steps`` and ``strides`` records with
+    times). cycles : the results' per-heel-strike records. A truth step is matched to the
+    detected record of the same side whose heel strike is within ``MATCH_S``; a truth stride
+    also needs the next heel strike within ``MATCH_S``. Unmatched ones are event misses,
+    already counted there. Returns lists of signed % errors per figure.
+    """
+    out: dict[str, list[float]] = {"step": [], "stride": [], "stance": [], "swing": []}
+
+    def find(side: str, when: float) -> Mapping[str, Any] | None:
+        best, hit = MATCH_S, None
+        for c in cycles:
+            if c["side"] == side and abs(c["heel_strike_s"] - when) <= best:
+                best, hit = abs(c["heel_strike_s"] - when), c
+        return hit
+
+    def add(key: str, est: Any, true: Any) -> None:
+        if est is not None and true and np.isfinite(true):
+            out[key].append(100.0 * (float(est) - float(true)) / float(true))
+
+    for st in truth_st.get("steps", []):
+        c = find(st["side"], st["time_s"])
+        if c is not None:
+            add("step", c.get("step_length_mm"), st["length_mm"])
+    for st in truth_st.get("strides", []):
+        c = find(st["side"], st["start_s"])
+        if c is None or "next_heel_strike_s" not in c:
+            continue
+        if abs(c["next_heel_strike_s"] - st["end_s"]) > MATCH_S:
+            continue
+        add("stride", c.get("stride_length_mm"), st["length_mm"])
+        add("stance", c.get("stance_s"), st.get("stance_s"))
+        add("swing", c.get("swing_s"), st.get("swing_s"))
+    return out
+
+
+def score_trial(
+    doc: Mapping[str, Any],
+    truth_summary: Mapping[str, Any],
+    t_frames: np.ndarray,
+    knee_truth: np.ndarray,
+    knee_pig: np.ndarray,
+) -> dict[str, Any]:
+    """All gait figures of one analysed trial against its ground truth.
+
+    doc : the results document. truth_summary : ``SimSession.truth_summary(name)`` plus
+        ``observable_events`` (:func:`observable_events`).
+    t_frames : (F,) s; knee_truth, knee_pig : (F, 2) deg (L, R), NaN outside the passes.
+    """
+    ev = match_events(truth_summary.get("observable_events", []), doc["events"])
+    out: dict[str, Any] = {"events": ev}
+    for k, side in enumerate("LR"):
+        out[f"knee_rmse_{side}"] = knee_rmse(
+            t_frames,
+            knee_truth[:, k],
+            doc["knee_flexion_deg"]["time_s"],
+            doc["knee_flexion_deg"][side],
+        )
+        out[f"knee_rmse_pig_{side}"] = knee_rmse(
+            t_frames,
+            knee_pig[:, k],
+            doc["knee_flexion_deg"]["time_s"],
+            doc["knee_flexion_deg"][side],
+        )
+    out.update(matched_errors(truth_summary.get("spatiotemporal", {}), doc.get("cycles", [])))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the markers level: the gait stage on noisy true trajectories
+
+
+def _marker_frames(ses: Any, name: str, noise_mm: float, seed: int) -> Iterator[Any]:
+    """LabelledMarkers of one simulated walk from the true markers plus noise (no render)."""
+    from gaitflow.schemas import LabelledMarkers
+
+    rec = ses.recordings[name]
+    wm = rec.motion
+    r = ses.renderer
+    cam = ses.camera
+    rng = np.random.default_rng([seed, 77])
+    t = rec.times.time_s
+    world = wm.markers_caps(t)[0]
+    pos = r.to_cam(world)
+    pos = pos + rng.normal(0.0, noise_mm, pos.shape)
+    pix = cam.project(pos.reshape(-1, 3)).reshape(*pos.shape[:-1], 2)
+    out_of_view = ((pix[..., 0] < 0) | (pix[..., 0] > cam.width - 1) | (pix[..., 1] < 0)) | (
+        pix[..., 1] > cam.height - 1
+    )
+    pos[out_of_view] = np.nan
+    pix[out_of_view] = np.nan
+    n = len(t)
+    for k in range(n):
+        hdr = LabelledMarkers.make_header(
+            "cam0", name, int(rec.times.index[k]), rec.t0_ns + round(float(t[k]) * 1e9), k == n - 1
+        )
+        yield LabelledMarkers(
+            header=hdr,
+            position=pos[k],
+            pixel=pix[k],
+            blob=np.full(20, -1, dtype=np.int32),
+            direction=0,
+            near_side="",
+        )
+
+
+def observable_events(ses: Any, name: str, margin_s: float = 0.1) -> list[dict[str, Any]]:
+    """The truth events of a walk whose foot (heel and toe) is in the image around the event.
+
+    An event of a foot outside the field of view cannot be detected by any camera method, so
+    it counts neither as a miss nor as a reference for a false detection.
+    """
+    rec = ses.recordings[name]
+    wm = rec.motion
+    cam = ses.camera
+    out = []
+    for e in ses.truth_summary(name).get("events", []):
+        ts = np.array([e["time_s"] - margin_s, e["time_s"], e["time_s"] + margin_s])
+        m = ses.renderer.to_cam(wm.markers_caps(ts)[0])
+        ok = True
+        for site in ("HEE", "TOE"):
+            p = cam.project(m[:, MARKER_INDEX[f"{e['side']}_{site}"]])
+            ok &= bool(
+                np.all((p[:, 0] >= 0) & (p[:, 0] <= cam.width - 1))
+                and np.all((p[:, 1] >= 0) & (p[:, 1] <= cam.height - 1))
+            )
+        if ok:
+            out.append(e)
+    return out
+
+
+def _true_calibration(ses: Any, name: str) -> Any:
+    """The exact floor plane and walking line of a simulated session (markers level)."""
+    from gaitflow.schemas import CalibrationRecord
+
+    wm = ses.recordings[name].motion
+    r = ses.renderer
+    start_w = wm.start_point() * np.array([1.0, 1.0, 0.0])
+    end_w = start_w + np.array([3000.0, 0.0, 0.0])
+    hdr = CalibrationRecord.make_header("cam0", "calibration", 0, 0, True)
+    return CalibrationRecord(
+        header=hdr,
+        floor_pixels=np.zeros((0, 2)),
+        floor_points=np.zeros((0, 3)),
+        floor_plane=r.floor_plane_cam(),
+        start=r.to_cam(start_w),
+        end=r.to_cam(end_w),
+        status="Done",
+    )
+
+
+def _truth_knees(ses: Any, name: str, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 2) simulator knee flexion and (F, 2) source PiG knee flexion, NaN in the turn."""
+    from gaitflow.sim.body import knee_flexion
+
+    wm = ses.recordings[name].motion
+    world = wm.markers_caps(t)[0]
+    kt = knee_flexion(world)
+    pig = wm.knee_ref(t)
+    turn = np.isnan(pig).all(axis=1)
+    kt[turn] = np.nan
+    return kt, pig
+
+
+def run_markers_level(
+    trial: str, seed: int, noise_mm: float, params: Mapping[str, Any] | None = None
+) -> tuple[dict[str, Any], dict[str, Any], np.ndarray, np.ndarray, np.ndarray]:
+    """Simulate, analyse with the gait stage alone; return (doc, truth, t, knee, pig)."""
+    from gaitflow.sim import simulate_session
+    from gaitflow.stages import gait as gait_stage
+
+    ses = simulate_session(trial, seed)
+    name = ses.walks()[0]
+    cal = _true_calibration(ses, name)
+    state = gait_stage.init(gait_stage.PARAMS.resolve(params or {}))
+    summaries = []
+    for msg in _marker_frames(ses, name, noise_mm, seed):
+        state, outs = gait_stage.step(state, {"labelled": msg, "calibration": cal})
+        summaries += [o for o in outs if o.STREAM == "summary"]
+    state, outs = gait_stage.finish(state)
+    summaries += [o for o in outs if o.STREAM == "summary"]
+    doc = next(s.results for s in summaries if s.results.get("scope") == "trial")
+    truth = ses.truth_summary(name)
+    truth["observable_events"] = observable_events(ses, name)
+    t = ses.recordings[name].times.time_s
+    knee, pig = _truth_knees(ses, name, t)
+    return doc, truth, t, knee, pig
+
+
+# ---------------------------------------------------------------------------------------------
+# the pipeline level
+
+
+def run_pipeline_level(
+    trial: str, seed: int, params: Mapping[str, Any] | None = None
+) -> tuple[dict[str, Any], dict[str, Any], np.ndarray, np.ndarray, np.ndarray, float]:
+    """Simulate, run the whole graph inline; return (doc, truth, t, knee, pig, label_pct)."""
+    from gaitflow.sim import simulate_session
+    from gaitflow.stages.graph import load
+    from gaitflow.stages.inline import InlinePipeline
+
+    ses = simulate_session(trial, seed)
+    name = ses.walks()[0]
+    graph = load()
+    summaries: list[Any] = []
+    labelled: dict[int, Any] = {}
+    truths: dict[int, Any] = {}
+
+    def sink(stream: str, msg: Any) -> None:
+        if stream == "summary" and msg.header.trial == name:
+            summaries.append(msg)
+        elif stream == "labelled" and msg.header.trial == name:
+            labelled[msg.header.frame] = msg
+
+    pipe = InlinePipeline(graph, params={"gait": dict(params or {})}, sink=sink)
+    for rec_name in ("calibration", "static", name):
+        for raw, truth in ses.recordings[rec_name]:
+            if rec_name == name:
+                truths[raw.header.frame] = truth
+            pipe.push(raw)
+    pipe.finish()
+    docs = [s.results for s in summaries if s.results.get("scope") == "trial"]
+    if not docs:
+        raise RuntimeError(f"bench gait: no trial summary for {trial} {name}")
+    truth = ses.truth_summary(name)
+    truth["observable_events"] = observable_events(ses, name)
+    t = ses.recordings[name].times.time_s
+    knee, pig = _truth_knees(ses, name, t)
+    return docs[-1], truth, t, knee, pig, labelling_accuracy(labelled, truths)
+
+
+def labelling_accuracy(labelled: Mapping[int, Any], truths: Mapping[int, Any]) -> float:
+    """% of truth-visible (frame, marker) pairs labelled within LABEL_TOL_PX of the truth."""
+    try:
+        from gaitflow.stages.label import score_labelling  # the labelling helper's scorer
+    except ImportError:
+        score_labelling = None
+    if score_labelling is not None:
+        frames = sorted(set(labelled) & set(truths))
+        return float(score_labelling([labelled[f] for f in frames], [truths[f] for f in frames]))
+    good = total = 0
+    for f, tr in truths.items():
+        lab = labelled.get(f)
+        for k in range(len(MARKER_NAMES)):
+            if not bool(tr.visible[k]):
+                continue
+            total += 1
+            if lab is None:
+                continue
+            d = np.asarray(lab.pixel[k]) - np.asarray(tr.pixel[k])
+            if np.all(np.isfinite(d)) and float(np.hypot(*d)) <= LABEL_TOL_PX:
+                good += 1
+    return 100.0 * good / total if total else float("nan")
+
+
+# ---------------------------------------------------------------------------------------------
+# command
+
+
+def _nanmean(xs: Sequence[float]) -> float:
+    v = [x for x in xs if x is not None and np.isfinite(x)]
+    return float(np.mean(v)) if v else float("nan")
+
+
+def run(args: argparse.Namespace) -> int:
+    from gaitflow.sim import list_trials
+
+    trials = args.trials or list_trials()
+    rows = []
+    per: dict[str, Any] = {}
+    all_err: dict[str, list[float]] = {"heel_strike": [], "toe_off": []}
+    counts = {k: {"n": 0, "miss": 0, "false": 0} for k in all_err}
+    params = {"xi": args.xi, "phi": args.xi} if args.xi is not None else {}
+    if args.refine:
+        params["refine"] = args.refine
+    for trial in trials:
+        t0 = time.perf_counter()
+        label = float("nan")
+        if args.level == "markers":
+            doc, truth, t, knee, pig = run_markers_level(trial, args.seed, args.noise_mm, params)
+        else:
+            doc, truth, t, knee, pig, label = run_pipeline_level(trial, args.seed, params)
+        sc = score_trial(doc, truth, t, knee, pig)
+        sc["labelling_pct"] = label
+        sc["seconds"] = time.perf_counter() - t0
+        per[trial] = sc
+        for k in all_err:
+            e = sc["events"][k]
+            all_err[k] += e["errors_s"]
+            counts[k]["n"] += e["n_truth"]
+            counts[k]["miss"] += e["miss"]
+            counts[k]["false"] += e["false"]
+        hs = np.abs(sc["events"]["heel_strike"]["errors_s"]) * 1000
+        to = np.abs(sc["events"]["toe_off"]["errors_s"]) * 1000
+        rows.append(
+            [
+                trial,
+                label,
+                sc["knee_rmse_L"],
+                sc["knee_rmse_R"],
+                sc["knee_rmse_pig_L"],
+                sc["knee_rmse_pig_R"],
+                float(np.mean(hs)) if hs.size else float("nan"),
+                float(np.mean(to)) if to.size else float("nan"),
+                _nanmean(np.abs(sc["step"]).tolist()),
+                _nanmean(np.abs(sc["stride"]).tolist()),
+                _nanmean(np.abs(sc["stance"]).tolist()),
+                _nanmean(np.abs(sc["swing"]).tolist()),
+            ]
+        )
+    knee_all = [v for s in per.values() for v in (s["knee_rmse_L"], s["knee_rmse_R"])]
+    pig_all = [v for s in per.values() for v in (s["knee_rmse_pig_L"], s["knee_rmse_pig_R"])]
+    summary = {
+        "labelling_pct": _nanmean([s["labelling_pct"] for s in per.values()]),
+        "knee_rmse_deg": _nanmean(knee_all),
+        "knee_rmse_worst_deg": float(np.nanmax(knee_all))
+        if np.isfinite(knee_all).any()
+        else float("nan"),
+        "knee_rmse_pig_deg": _nanmean(pig_all),
+        "knee_rmse_pig_worst_deg": float(np.nanmax(pig_all))
+        if np.isfinite(pig_all).any()
+        else float("nan"),
+    }
+    for k in all_err:
+        e = np.abs(all_err[k]) * 1000
+        summary[f"{k}_mae_ms"] = float(e.mean()) if e.size else float("nan")
+        summary[f"{k}_miss_pct"] = 100.0 * counts[k]["miss"] / max(counts[k]["n"], 1)
+        summary[f"{k}_false_pct"] = 100.0 * counts[k]["false"] / max(counts[k]["n"], 1)
+    for key in ("step", "stride", "stance", "swing"):
+        errs = [abs(v) for s in per.values() for v in s[key]]
+        summary[f"{key}_err_pct"] = _nanmean(errs)
+        summary[f"{key}_err_sd_pct"] = float(np.std(errs)) if errs else float("nan")
+        summary[f"{key}_matched"] = len(errs)
+    cols = [
+        "trial",
+        "label%",
+        "kneeL",
+        "kneeR",
+        "pigL",
+        "pigR",
+        "HS ms",
+        "TO ms",
+        "step%",
+        "stride%",
+        "stance%",
+        "swing%",
+    ]
+    t1 = format_table(
+        f"bench gait (level={args.level}, seed={args.seed}): per trial (knee RMSE in deg)",
+        cols,
+        rows,
+    )
+    srows = [
+        ["labelling correct %", summary["labelling_pct"], PAPER["detected_pct"], ">= 99.5"],
+        ["knee RMSE vs truth, deg", summary["knee_rmse_deg"], float("nan"), "<= 2.5"],
+        ["knee RMSE worst trial, deg", summary["knee_rmse_worst_deg"], float("nan"), "<= 4"],
+        ["knee RMSE vs PiG, deg", summary["knee_rmse_pig_deg"], float("nan"), "-"],
+        ["knee RMSE vs PiG worst", summary["knee_rmse_pig_worst_deg"], 6.0, "-"],
+        ["heel strike MAE, ms", summary["heel_strike_mae_ms"], float("nan"), "<= 33"],
+        ["toe off MAE, ms", summary["toe_off_mae_ms"], float("nan"), "<= 33"],
+        [
+            "heel strike miss/false %",
+            f"{summary['heel_strike_miss_pct']:.1f}/{summary['heel_strike_false_pct']:.1f}",
+            "-",
+            "-",
+        ],
+        [
+            "toe off miss/false %",
+            f"{summary['toe_off_miss_pct']:.1f}/{summary['toe_off_false_pct']:.1f}",
+            "-",
+            "-",
+        ],
+        ["step length error %", summary["step_err_pct"], PAPER["step_err_pct"], "<= 1"],
+        ["stride length error %", summary["stride_err_pct"], PAPER["stride_err_pct"], "<= 1"],
+        ["stance error %", summary["stance_err_pct"], PAPER["stance_err_pct"], "-"],
+        ["swing error %", summary["swing_err_pct"], PAPER["swing_err_pct"], "-"],
+    ]
+    t2 = format_table(
+        "summary: ours beside the paper (Table II/IV, Vicon comparison Fig. 12)",
+        ["figure", "ours", "paper", "goal"],
+        srows,
+    )
+    emit(
+        args,
+        {"level": args.level, "seed": args.seed, "summary": summary, "trials": _jsonable(per)},
+        [t1, t2],
+    )
+    return 0
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float | np.floating):
+        return float(x) if np.isfinite(x) else None
+    return x
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "gait",
+        help="gait figures on simulated sessions beside the paper's",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Example: gaitflow bench gait --trials btk_PiG_Motion3_FF --level markers",
+    )
+    p.add_argument("--trials", nargs="*", default=None, help="bundled trial ids (default: all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--level", choices=("pipeline", "markers"), default="pipeline")
+    p.add_argument("--noise-mm", type=float, default=3.0, help="markers level: noise sigma")
+    p.add_argument("--xi", type=float, default=None, help="override Alg. 6 xi = phi")
+    p.add_argument("--refine", choices=("velocity", "none"), default=None)
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+__all__ = ["MARKER_INDEX", "register"]

@@ -1,0 +1,878 @@
+"""Pure numeric gait analysis: gap filling, resampling, Alg. 6, events and parameters.
+
+This is the post-processing of ``../shared/reference/algorithms.md`` sections 3.6 and 5.
+Every function is pure: numpy in, numpy (or frozen dataclasses) out, no I/O.
+
+Conventions:
+
+- time is axis 0 of every series; ``t`` is in seconds (float64, strictly increasing);
+- NaN means missing; a row of a (F, D) series is missing when any of its values is NaN;
+- positions are camera-space mm, heights are mm above the floor plane, angles are degrees;
+- sample indices refer to the series a function was given (30 fps camera frames, or the
+  100 Hz resampled series).
+
+Gap filling (algorithms.md section 5, reading (b)): a missing stretch is replaced by one cubic
+Bezier segment between the last sample before and the first sample after it, with the end
+tangents estimated from the two samples on each side (one-sided differences; the chord slope
+when a side has only one sample). The maximum gap is ``max_gap_s``: the time from the last
+seen to the next seen sample. The default 0.3 s (up to 8 missing frames at 30 fps) covers the
+arm-swing occlusions of the hip and thigh markers (about a third of a gait cycle at most); a
+longer gap spans a large part of a swing, where a cubic cannot follow the foot, so it stays
+missing.
+
+Resampling: a non-uniform Catmull-Rom spline written as cubic Bezier segments,
+``P1 = x_i + m_i h / 3`` and ``P2 = x_{i+1} - m_{i+1} h / 3`` with
+``m_i = (x_{i+1} - x_{i-1}) / (t_{i+1} - t_{i-1})`` and ``h = t_{i+1} - t_i``. With uniform
+frames this is exactly the recommended ``P1 = x_i + (x_{i+1} - x_{i-1}) / 6``. Evaluated at
+``t_0 + k / rate``. Segments with a missing end stay missing.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+SIDES = ("L", "R")
+
+
+# ---------------------------------------------------------------------------------------------
+# gaps and resampling (algorithms.md section 5)
+
+
+def missing_rows(x: np.ndarray) -> np.ndarray:
+    """Rows of ``x`` (F,) or (F, D) that hold a NaN. Returns (F,) bool."""
+    x = np.asarray(x, dtype=float)
+    return ~np.isfinite(x) if x.ndim == 1 else ~np.all(np.isfinite(x), axis=1)
+
+
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs of True in a 1-D bool array as inclusive (first, last) index pairs."""
+    m = np.asarray(mask, dtype=bool)
+    if m.size == 0:
+        return []
+    d = np.diff(np.concatenate(([0], m.view(np.int8), [0])))
+    starts = np.flatnonzero(d == 1)
+    stops = np.flatnonzero(d == -1) - 1
+    return list(zip(starts.tolist(), stops.tolist(), strict=True))
+
+
+def _bezier(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray, p3: np.ndarray, s: np.ndarray):
+    s = s[:, None]
+    u = 1.0 - s
+    return u**3 * p0 + 3 * u**2 * s * p1 + 3 * u * s**2 * p2 + s**3 * p3
+
+
+def fill_gaps(
+    t: np.ndarray, x: np.ndarray, max_gap_s: float = 0.3
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill interior gaps with cubic Bezier segments (algorithms.md section 5, Rec. (b)).
+
+    Parameters
+    ----------
+    t : (F,) seconds, increasing.
+    x : (F,) or (F, D) series, NaN = missing (a row with any NaN is missing as a whole).
+    max_gap_s : the longest fillable gap, measured from the last seen sample before it to the
+        first seen sample after it. Gaps touching either end of the series are never filled.
+
+    Returns
+    -------
+    filled : same shape as ``x``; filled rows hold the Bezier values.
+    was_filled : (F,) bool, the rows that were filled.
+    """
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    flat = x.ndim == 1
+    xs = x[:, None] if flat else x
+    out = xs.copy()
+    miss = missing_rows(xs)
+    filled = np.zeros(len(t), dtype=bool)
+    for a, b in runs(miss):
+        lo, hi = a - 1, b + 1  # the seen samples around the gap
+        if lo < 0 or hi >= len(t):
+            continue
+        h = t[hi] - t[lo]
+        if not h <= max_gap_s + 1e-9:
+            continue
+        chord = (xs[hi] - xs[lo]) / h
+        # one-sided tangents from the neighbouring seen sample, else the chord slope
+        m0 = (xs[lo] - xs[lo - 1]) / (t[lo] - t[lo - 1]) if lo >= 1 and not miss[lo - 1] else chord
+        m3 = (
+            (xs[hi + 1] - xs[hi]) / (t[hi + 1] - t[hi])
+            if hi + 1 < len(t) and not miss[hi + 1]
+            else chord
+        )
+        p0, p3 = xs[lo], xs[hi]
+        p1, p2 = p0 + m0 * h / 3.0, p3 - m3 * h / 3.0
+        s = (t[a : b + 1] - t[lo]) / h
+        out[a : b + 1] = _bezier(p0, p1, p2, p3, s)
+        filled[a : b + 1] = True
+    return (out[:, 0] if flat else out), filled
+
+
+def resample(t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    """Resample a series onto ``t[0] + k / rate_hz`` with Catmull-Rom Bezier segments.
+
+    Parameters
+    ----------
+    t : (F,) seconds, strictly increasing (the frame timestamps, not assumed uniform).
+    x : (F,) or (F, D); NaN rows stay missing: an output sample is NaN when either end of
+        its segment is missing.
+    rate_hz : output rate.
+
+    Returns
+    -------
+    tq : (Q,) output times, ``t[0] + k / rate_hz`` up to ``t[-1]``.
+    xq : (Q,) or (Q, D).
+    """
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    flat = x.ndim == 1
+    xs = x[:, None] if flat else x
+    n = len(t)
+    if n == 0:
+        return np.zeros(0), np.zeros((0,) if flat else (0, xs.shape[1]))
+    nq = int(np.floor((t[-1] - t[0]) * rate_hz + 1e-6)) + 1
+    tq = t[0] + np.arange(nq) / rate_hz
+    if n == 1:
+        xq = np.repeat(xs, nq, axis=0)
+        return tq, (xq[:, 0] if flat else xq)
+    miss = missing_rows(xs)
+    # tangents: central difference where both neighbours are seen, else one-sided
+    m = np.full_like(xs, np.nan)
+    for i in range(n):
+        if miss[i]:
+            continue
+        prev_ok = i > 0 and not miss[i - 1]
+        next_ok = i < n - 1 and not miss[i + 1]
+        if prev_ok and next_ok:
+            m[i] = (xs[i + 1] - xs[i - 1]) / (t[i + 1] - t[i - 1])
+        elif next_ok:
+            m[i] = (xs[i + 1] - xs[i]) / (t[i + 1] - t[i])
+        elif prev_ok:
+            m[i] = (xs[i] - xs[i - 1]) / (t[i] - t[i - 1])
+        else:
+            m[i] = 0.0
+    seg = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, n - 2)
+    h = t[seg + 1] - t[seg]
+    s = (tq - t[seg]) / h
+    p0, p3 = xs[seg], xs[seg + 1]
+    p1 = p0 + m[seg] * (h / 3.0)[:, None]
+    p2 = p3 - m[seg + 1] * (h / 3.0)[:, None]
+    s2 = s[:, None]
+    u = 1.0 - s2
+    xq = u**3 * p0 + 3 * u**2 * s2 * p1 + 3 * u * s2**2 * p2 + s2**3 * p3
+    # exact hits on a seen sample keep it even when the next one is missing
+    exact = np.isclose(s, 0.0, atol=1e-9) & ~miss[seg]
+    xq[exact] = xs[seg[exact]]
+    bad = (miss[seg] | miss[seg + 1]) & ~exact
+    xq[bad] = np.nan
+    return tq, (xq[:, 0] if flat else xq)
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry
+
+
+def knee_flexion(hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray) -> np.ndarray:
+    """Knee flexion = 180 deg minus the angle HIP-KNE-ANK (algorithms.md section 5).
+
+    Parameters
+    ----------
+    hip, knee, ankle : (..., 3) positions, mm.
+
+    Returns
+    -------
+    (...) degrees; 0 = straight, positive = flexed; NaN where a marker is missing or two
+    coincide.
+    """
+    a = np.asarray(hip, dtype=float) - np.asarray(knee, dtype=float)
+    b = np.asarray(ankle, dtype=float) - np.asarray(knee, dtype=float)
+    na = np.linalg.norm(a, axis=-1)
+    nb = np.linalg.norm(b, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.sum(a * b, axis=-1) / (na * nb)
+        # atan2 of |cross| and dot is accurate near straight legs, where arccos is not
+        ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), c * na * nb))
+    ang = np.where((na > 0) & (nb > 0), ang, np.nan)
+    return 180.0 - ang
+
+
+def plane_height(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Signed height above a plane ``(nx, ny, nz, d)`` (unit normal up): ``n . p + d``.
+
+    points : (..., 3) mm. Returns (...) mm.
+    """
+    pl = np.asarray(plane, dtype=float)
+    n = pl[:3] / np.linalg.norm(pl[:3])
+    return np.asarray(points, dtype=float) @ n + pl[3] / np.linalg.norm(pl[:3])
+
+
+def walking_axis(start: np.ndarray, end: np.ndarray, plane: np.ndarray | None = None) -> np.ndarray:
+    """Unit vector from the start to the end point, made parallel to the floor. (3,)"""
+    u = np.asarray(end, dtype=float) - np.asarray(start, dtype=float)
+    if plane is not None:
+        n = np.asarray(plane[:3], dtype=float)
+        n = n / np.linalg.norm(n)
+        u = u - (u @ n) * n
+    norm = np.linalg.norm(u)
+    if not norm > 0:
+        raise ValueError(f"walking start {start} and end {end} give no direction")
+    return u / norm
+
+
+def progression(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Coordinate along the walking axis: ``(p - origin) . axis``. (..., 3) -> (...) mm."""
+    return (np.asarray(points, dtype=float) - np.asarray(origin, dtype=float)) @ np.asarray(axis)
+
+
+# ---------------------------------------------------------------------------------------------
+# Alg. 6: inflection-point search (water-filling reading, algorithms.md section 3.6 Rec.)
+
+
+@dataclass(frozen=True)
+class FlatRange:
+    """One flat range of a trajectory (a valley where the marker rests on the floor).
+
+    ``left``/``right`` are inclusive sample indices. An end is ``locked`` when the water
+    stopped spreading there (an inflection point eta); it is ``open`` when the range runs
+    into the start or end of the data (or a missing stretch), so that end is no event.
+    ``born`` is the normalised level at which the range first appeared.
+    """
+
+    left: int
+    right: int
+    left_locked: bool
+    right_locked: bool
+    left_open: bool
+    right_open: bool
+    born: float
+    left_level: float = float("nan")
+    right_level: float = float("nan")
+
+    @property
+    def length(self) -> int:
+        return self.right - self.left + 1
+
+
+@dataclass(frozen=True)
+class InflectionResult:
+    """Output of :func:`inflection_search`.
+
+    ranges : the kept flat ranges, in time order.
+    peaks : sample index of the highest point between consecutive kept ranges (rho).
+    lo, hi : the heights mapped to 0 and 1 by the normalisation.
+    """
+
+    ranges: tuple[FlatRange, ...]
+    peaks: tuple[int, ...]
+    lo: float
+    hi: float
+    all_ranges: tuple[FlatRange, ...] = field(default=())
+
+
+@dataclass
+class _Range:  # mutable working copy inside inflection_search only
+    left: int
+    right: int
+    born: float
+    left_locked: bool = False
+    right_locked: bool = False
+    left_level: float = float("nan")
+    right_level: float = float("nan")
+
+
+def inflection_search(
+    y: np.ndarray,
+    gamma: float = 0.05,
+    xi: float = 0.33,
+    phi: float = 0.33,
+    tau: int = 3,
+    max_born: float = 0.25,
+) -> InflectionResult:
+    """Alg. 6 as water-filling: find the flat valleys of a height trajectory.
+
+    Implements algorithms.md section 3.6 Rec. R0-R6. The heights are normalised to [0, 1]
+    (R0; the 1st and 99th percentiles map to 0 and 1, so a single outlier cannot squash the
+    scale). For each level k = gamma, 2 gamma, ..., 1 the samples at or below k form runs
+    (R2). A run meeting no range starts one; a run over one or more ranges moves only their
+    unlocked ends (R3); two ranges whose facing ends are both unlocked merge (the valley floor
+    was split by noise). An end that grew by less than ``xi`` (left) or ``phi`` (right) of the
+    range length from one level to the next is locked at its previous position (R4): the water
+    has reached the steep wall. Ranges are kept (R5) when their inner ends are locked (an end
+    at the data boundary is open, not locked), they are longer than ``tau`` samples and they
+    were born at a level <= ``max_born`` (a valley that only appears high up, such as the
+    toe's mid-swing clearance dip, is not a floor contact; this replaces the printed line-18
+    test, which reduces to a tautology, see [A-6c]).
+
+    Parameters
+    ----------
+    y : (N,) heights (any unit), NaN = missing (breaks ranges).
+    gamma : level step on the normalised scale (Table I: 0.05).
+    xi, phi : left and right growth-rate clip rates (Table I: 0.03; text: 0.33).
+    tau : minimum range length in samples (Table I: 3).
+    max_born : highest normalised level at which a kept range may appear.
+
+    Returns
+    -------
+    InflectionResult with the kept ranges (eta = their locked ends) and peaks (rho).
+    """
+    y = np.asarray(y, dtype=float)
+    fin = np.isfinite(y)
+    if fin.sum() < 2:
+        return InflectionResult((), (), float("nan"), float("nan"))
+    lo, hi = np.percentile(y[fin], [1.0, 99.0])
+    if not hi - lo > 1e-9:
+        return InflectionResult((), (), float(lo), float(hi))
+    yn = np.where(fin, np.clip((y - lo) / (hi - lo), 0.0, 1.0), np.nan)
+    nlev = int(np.ceil(1.0 / gamma - 1e-9))
+    levels = np.minimum(gamma * np.arange(1, nlev + 1), 1.0)
+    n = len(y)
+
+    def is_open_left(i: int) -> bool:
+        return i == 0 or not fin[i - 1]
+
+    def is_open_right(i: int) -> bool:
+        return i == n - 1 or not fin[i + 1]
+
+    ranges: list[_Range] = []
+    prev_level = 0.0
+    with np.errstate(invalid="ignore"):
+        for k in levels:
+            mask = fin & (yn <= k + 1e-12)
+            new_list: list[_Range] = []
+            old_bounds = {id(r): (r.left, r.right) for r in ranges}
+            ranges.sort(key=lambda r: r.left)
+            j = 0
+            for s, e in runs(mask):
+                hit = []
+                while j < len(ranges) and ranges[j].right < s:
+                    new_list.append(ranges[j])
+                    j += 1
+                while j < len(ranges) and ranges[j].left <= e:
+                    hit.append(ranges[j])
+                    j += 1
+                if not hit:
+                    new_list.append(_Range(s, e, float(k)))
+                    continue
+                # merge neighbours whose facing ends are both unlocked
+                merged: list[_Range] = [hit[0]]
+                for r in hit[1:]:
+                    last = merged[-1]
+                    if not last.right_locked and not r.left_locked:
+                        old_l = old_bounds[id(last)][0]
+                        old_r = old_bounds[id(r)][1]
+                        last.right, last.right_locked = r.right, r.right_locked
+                        last.right_level = r.right_level
+                        last.born = min(last.born, r.born)
+                        old_bounds[id(last)] = (old_l, old_r)
+                    else:
+                        merged.append(r)
+                for i, r in enumerate(merged):
+                    if not r.left_locked:
+                        r.left = s if i == 0 else merged[i - 1].right + 1
+                    if not r.right_locked:
+                        r.right = e if i == len(merged) - 1 else merged[i + 1].left - 1
+                    new_list.append(r)
+            new_list.extend(ranges[j:])
+            for r in new_list:
+                if id(r) not in old_bounds:
+                    continue
+                ol, orr = old_bounds[id(r)]
+                length = orr - ol + 1
+                # R4: the growth rate, not the slope (a flat floor floods fast, a wall slowly)
+                grew_l = (ol - r.left) / length
+                if not r.left_locked and not is_open_left(ol) and grew_l < xi:
+                    r.left, r.left_locked, r.left_level = ol, True, prev_level
+                grew_r = (r.right - orr) / length
+                if not r.right_locked and not is_open_right(orr) and grew_r < phi:
+                    r.right, r.right_locked, r.right_level = orr, True, prev_level
+            ranges = new_list
+            prev_level = float(k)
+
+    ranges.sort(key=lambda r: r.left)
+    frozen = [
+        FlatRange(
+            r.left,
+            r.right,
+            r.left_locked,
+            r.right_locked,
+            is_open_left(r.left),
+            is_open_right(r.right),
+            r.born,
+            r.left_level,
+            r.right_level,
+        )
+        for r in ranges
+    ]
+    kept = []
+    for r in frozen:
+        left_ok = r.left_locked or r.left_open
+        right_ok = r.right_locked or r.right_open
+        if not (left_ok and right_ok) or (r.left_open and r.right_open):
+            continue
+        if r.length <= tau or r.born > max_born + 1e-9:
+            continue
+        kept.append(r)
+    peaks = []
+    for a, b in itertools.pairwise(kept):
+        seg = yn[a.right + 1 : b.left]
+        if seg.size and np.isfinite(seg).any():
+            peaks.append(a.right + 1 + int(np.nanargmax(seg)))
+    return InflectionResult(tuple(kept), tuple(peaks), float(lo), float(hi), tuple(frozen))
+
+
+# ---------------------------------------------------------------------------------------------
+# events and spatio-temporal parameters (algorithms.md section 5)
+
+
+@dataclass(frozen=True)
+class Contact:
+    """One stance of one foot, from Alg. 6 on its heel and toe heights.
+
+    Times in seconds; NaN where that end of the stance was not observed. ``heel_pos`` is the
+    median progression of the heel over its flat range (mm along the walking direction).
+    """
+
+    side: str
+    heel_strike: float
+    heel_rise: float
+    toe_off: float
+    heel_pos: float
+    start: float
+    stop: float
+
+
+def _speed(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """|dx/dt| by central differences, NaN where undefined. (N,) -> (N,)"""
+    if len(t) < 2:
+        return np.full(len(t), np.nan)
+    return np.abs(np.gradient(x, t))
+
+
+def foot_contacts(
+    t: np.ndarray,
+    heel_h: np.ndarray,
+    toe_h: np.ndarray,
+    heel_prog: np.ndarray,
+    toe_prog: np.ndarray,
+    side: str,
+    gamma: float = 0.05,
+    xi: float = 0.33,
+    phi: float = 0.33,
+    tau: int = 3,
+    max_born: float = 0.25,
+    refine: str = "velocity",
+    hs_speed_frac: float = 0.1,
+    to_speed_frac: float = 0.3,
+    min_contact_s: float = 0.15,
+) -> list[Contact]:
+    """Stances of one foot from Alg. 6 on its heel and toe heights.
+
+    Heel strike = left end of the heel's flat range; toe off = right end of the toe's flat
+    range that overlaps it (algorithms.md section 5, Rec. [A-P3]). Cross-check: a toe range
+    is paired with the heel range it overlaps and its right end must fall before the next heel
+    strike of that foot; otherwise the toe off is unknown (NaN), never guessed.
+
+    With ``refine="velocity"`` (default) each event is then refined inside the bracket Alg. 6
+    gives. Measured on the 26 bundled real trials, the locked ends lead the labelled events
+    by about 100 ms (heel) and 70 ms (toe): a heel marker decelerates gradually into the floor
+    and a toe marker lifts while the forefoot rolls, so "flat" begins after the water has
+    locked and ends before the foot leaves. The refinement uses the foot's speed along the
+    walking direction (the zero-velocity rule of Ghoussayni et al., Gait Posture 2004, with a
+    threshold relative to the foot's own swing speed so slow and pathological gait scale):
+    heel strike = first sample from the heel lock minus 0.3 s (not before the previous swing
+    peak) at which the heel's speed falls to ``hs_speed_frac`` of its swing speed; toe off =
+    first sample after the toe lock at which the toe's speed exceeds ``to_speed_frac`` of it.
+    ``refine="none"`` returns the locked ends as printed.
+
+    Parameters
+    ----------
+    t : (N,) s; heel_h, toe_h : (N,) mm above the floor (NaN = missing);
+    heel_prog, toe_prog : (N,) positions along the walking direction, mm.
+    side : "L" or "R". gamma, xi, phi, tau, max_born : see :func:`inflection_search`.
+    refine : "velocity" or "none". hs_speed_frac, to_speed_frac : speed thresholds, as
+        fractions of the foot's swing speed (90th percentile of its speed).
+    min_contact_s : a heel strike whose flat range runs into the end of the data (the foot
+        leaves the view) must be followed by at least this much observed contact.
+
+    Returns
+    -------
+    Contacts in time order (one per heel flat range).
+    """
+    t = np.asarray(t, dtype=float)
+    heel_h = np.asarray(heel_h, dtype=float)
+    toe_h = np.asarray(toe_h, dtype=float)
+    hr = inflection_search(heel_h, gamma, xi, phi, tau, max_born)
+    tr = (
+        inflection_search(toe_h, gamma, xi, phi, tau, max_born)
+        if np.isfinite(toe_h).sum() > 1
+        else InflectionResult((), (), float("nan"), float("nan"))
+    )
+    vh = _speed(t, np.asarray(heel_prog, dtype=float))
+    vt = _speed(t, np.asarray(toe_prog, dtype=float))
+    ref = np.nanpercentile(vh, 90) if np.isfinite(vh).any() else float("nan")
+    use_vel = refine == "velocity" and np.isfinite(ref) and ref > 0
+    out: list[Contact] = []
+    hranges = list(hr.ranges)
+    n = len(t)
+    for i, r in enumerate(hranges):
+        hs_i = r.left if r.left_locked else -1
+        if use_vel and hs_i >= 0:
+            first = int(np.searchsorted(t, t[r.left] - 0.3))
+            if i > 0:
+                first = max(first, hranges[i - 1].right + 1)
+            if i > 0 and hr.peaks and i - 1 < len(hr.peaks):
+                first = max(first, hr.peaks[i - 1])
+            j = first
+            while j < r.right and not (vh[j] <= hs_speed_frac * ref):
+                j += 1
+            # the heel never came to rest inside its flat range: no heel strike, not a guess
+            hs_i = j if j < r.right else -1
+        if hs_i >= 0 and r.right_open and t[r.right] - t[hs_i] < min_contact_s:
+            # seen for too short a time before the data ends (leaving the view): no event
+            hs_i = -1
+        hs = float(t[hs_i]) if hs_i >= 0 else float("nan")
+        rise = float(t[r.right]) if r.right_locked else float("nan")
+        next_left = hranges[i + 1].left if i + 1 < len(hranges) else n
+        to = float("nan")
+        for q in tr.ranges:
+            if q.right < r.left or q.left > r.right or not q.right_locked:
+                continue
+            if not (r.left <= q.right < next_left and q.right >= r.right - 1):
+                continue
+            j = q.right
+            if use_vel:
+                while j < next_left - 1 and j < n - 1 and not (vt[j] > to_speed_frac * ref):
+                    j += 1
+                if not vt[j] > to_speed_frac * ref:
+                    continue  # the toe never left inside this stride: no toe off
+            to = float(t[j])
+        pos = np.asarray(heel_prog[r.left : r.right + 1], dtype=float)
+        pos_med = float(np.nanmedian(pos)) if np.isfinite(pos).any() else float("nan")
+        out.append(Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right])))
+    return out
+
+
+def events_from_contacts(contacts: Sequence[Contact]) -> list[dict]:
+    """Gait events as results.md records ``{"side", "kind", "time_s"}``, sorted by time."""
+    ev = []
+    for c in contacts:
+        if np.isfinite(c.heel_strike):
+            ev.append({"side": c.side, "kind": "heel_strike", "time_s": round(c.heel_strike, 4)})
+        if np.isfinite(c.toe_off):
+            ev.append({"side": c.side, "kind": "toe_off", "time_s": round(c.toe_off, 4)})
+    ev.sort(key=lambda e: (e["time_s"], e["side"], e["kind"]))
+    return ev
+
+
+def _finite(v: float) -> bool:
+    return v is not None and bool(np.isfinite(v))
+
+
+def _at(t: np.ndarray, x: np.ndarray, when: float) -> float:
+    """x at time ``when`` by linear interpolation; NaN if a neighbouring sample is missing."""
+    i = int(np.searchsorted(t, when))
+    if i <= 0 or i >= len(t):
+        return float(x[0]) if i == 0 and len(t) and t[0] == when else float("nan")
+    a, b = x[i - 1], x[i]
+    if not (np.isfinite(a) and np.isfinite(b)):
+        return float("nan")
+    w = (when - t[i - 1]) / (t[i] - t[i - 1])
+    return float(a + w * (b - a))
+
+
+def spatiotemporal(
+    contacts: dict[str, list[Contact]],
+    direction: float = 1.0,
+    t: np.ndarray | None = None,
+    heel_prog: dict[str, np.ndarray] | None = None,
+) -> dict[str, dict[str, list[float]] | float]:
+    """Step and stride length, stance and swing per side, cadence and speed.
+
+    Definitions of ``../shared/spec/results.md``:
+
+    - step length (assigned to the leading foot at its heel strike): distance along the
+      walking direction between the two heels at that heel strike;
+    - stride length: between the positions of the same heel at successive heel strikes;
+    - stance: heel strike to toe off of the same foot; swing: toe off to the next heel strike;
+    - cadence: steps per minute from all heel strikes of both feet; speed: total stride length
+      over total stride time.
+
+    Heel positions at a strike come from ``heel_prog`` (interpolated at the strike time);
+    where a heel is unseen at that moment (or no trajectories are given) the median position
+    over its Alg. 6 flat range stands in (algorithms.md section 5: Fig. 6's stable windows).
+
+    Parameters
+    ----------
+    contacts : {"L": [...], "R": [...]} stances in time order (one walking pass).
+    direction : +1 or -1, the sign of progression along the walking axis in this pass.
+    t : (N,) s and heel_prog : {"L": (N,), "R": (N,)} mm, optional heel trajectories.
+
+    Returns
+    -------
+    {"L": {...lists...}, "R": {...}, "cadence_steps_per_min": float, "speed_m_s": float};
+    NaN where a figure cannot be measured. Private keys: ``_records``, one record per heel
+    strike with the figures that belong to it (times included, for matching); stride totals.
+    """
+
+    def pos(side: str, when: float, fallback: float) -> float:
+        if t is None or heel_prog is None or side not in heel_prog:
+            return fallback
+        v = _at(t, heel_prog[side], when)
+        return v if np.isfinite(v) else fallback
+
+    out: dict = {}
+    stride_len_total = 0.0
+    stride_time_total = 0.0
+    records: list[dict[str, Any]] = []
+    for side in SIDES:
+        other = "R" if side == "L" else "L"
+        mine = contacts.get(side, [])
+        theirs = contacts.get(other, [])
+        step, stride, stance, swing = [], [], [], []
+        other_hs = [o.heel_strike for o in theirs if _finite(o.heel_strike)]
+        for i, c in enumerate(mine):
+            if not _finite(c.heel_strike):
+                continue
+            rec: dict[str, Any] = {"side": side, "heel_strike_s": round(c.heel_strike, 4)}
+            prior = [
+                o
+                for o in theirs
+                if o.start < c.heel_strike and _finite(o.heel_pos) and o.stop >= c.start - 0.5
+            ]
+            if prior:
+                here = pos(side, c.heel_strike, c.heel_pos)
+                there = pos(other, c.heel_strike, prior[-1].heel_pos)
+                d = direction * (here - there)
+                if _finite(d) and d > 0:
+                    step.append(round(float(d), 2))
+                    rec["step_length_mm"] = step[-1]
+            if _finite(c.toe_off) and c.toe_off > c.heel_strike:
+                stance.append(round(c.toe_off - c.heel_strike, 4))
+                rec["toe_off_s"] = round(c.toe_off, 4)
+                rec["stance_s"] = stance[-1]
+            nxt = mine[i + 1] if i + 1 < len(mine) else None
+            # a stride holds exactly one contralateral strike; more means a missed contact
+            between = (
+                sum(1 for x in other_hs if c.heel_strike < x < nxt.heel_strike)
+                if nxt is not None and _finite(nxt.heel_strike)
+                else -1
+            )
+            if nxt is not None and _finite(nxt.heel_strike) and between <= 1:
+                rec["next_heel_strike_s"] = round(nxt.heel_strike, 4)
+                a = pos(side, c.heel_strike, c.heel_pos)
+                b = pos(side, nxt.heel_strike, nxt.heel_pos)
+                sl = direction * (b - a)
+                if _finite(sl) and sl > 0:
+                    stride.append(round(float(sl), 2))
+                    rec["stride_length_mm"] = stride[-1]
+                    stride_len_total += sl
+                    stride_time_total += nxt.heel_strike - c.heel_strike
+                if _finite(c.toe_off) and c.heel_strike < c.toe_off < nxt.heel_strike:
+                    swing.append(round(nxt.heel_strike - c.toe_off, 4))
+                    rec["swing_s"] = swing[-1]
+            records.append(rec)
+        out[side] = {
+            "step_length_mm": step,
+            "stride_length_mm": stride,
+            "stance_s": stance,
+            "swing_s": swing,
+        }
+    hs = sorted(c.heel_strike for s in SIDES for c in contacts.get(s, []) if _finite(c.heel_strike))
+    if len(hs) >= 2:
+        gaps = np.diff(hs)
+        out["cadence_steps_per_min"] = round(float(60.0 / np.mean(gaps)), 3)
+    else:
+        out["cadence_steps_per_min"] = float("nan")
+    out["speed_m_s"] = (
+        round(stride_len_total / stride_time_total / 1000.0, 4)
+        if stride_time_total > 0
+        else float("nan")
+    )
+    out["_records"] = sorted(records, key=lambda r: r["heel_strike_s"])
+    out["_stride_len_total"] = stride_len_total
+    out["_stride_time_total"] = stride_time_total
+    return out
+
+
+def pool_spatiotemporal(
+    contacts_per_pass: Sequence[dict[str, list[Contact]]],
+    st_per_pass: Sequence[dict[str, Any]],
+) -> dict[str, Any]:
+    """Spatio-temporal parameters of several passes pooled into one set.
+
+    The per-side lists are concatenated in pass order. Cadence pools the intervals between
+    consecutive heel strikes (both feet) inside each pass; speed pools stride lengths over
+    stride times. A turn between passes therefore never counts as walking.
+
+    Parameters
+    ----------
+    contacts_per_pass : per pass, the stances per side (progression signed forward).
+    st_per_pass : per pass, the output of :func:`spatiotemporal`.
+    """
+    out: dict[str, Any] = {}
+    for side in SIDES:
+        out[side] = {
+            k: [x for st in st_per_pass for x in st[side][k]]
+            for k in ("step_length_mm", "stride_length_mm", "stance_s", "swing_s")
+        }
+    gaps: list[float] = []
+    for contacts in contacts_per_pass:
+        hs = sorted(
+            c.heel_strike for s in SIDES for c in contacts.get(s, []) if _finite(c.heel_strike)
+        )
+        gaps.extend(np.diff(hs).tolist())
+    length = sum(st.get("_stride_len_total", 0.0) for st in st_per_pass)
+    duration = sum(st.get("_stride_time_total", 0.0) for st in st_per_pass)
+    out["cadence_steps_per_min"] = round(60.0 / float(np.mean(gaps)), 3) if gaps else float("nan")
+    out["speed_m_s"] = round(length / duration / 1000.0, 4) if duration > 0 else float("nan")
+    return out
+
+
+PHASES = (
+    "initial_contact",
+    "loading_response",
+    "mid_stance",
+    "terminal_stance",
+    "pre_swing",
+    "initial_swing",
+    "mid_swing",
+    "terminal_swing",
+)
+
+
+def gait_phases(
+    contacts: dict[str, list[Contact]],
+    t: np.ndarray,
+    heel_prog: dict[str, np.ndarray],
+    shank_tilt: dict[str, np.ndarray],
+) -> dict[str, list[dict[str, float]]]:
+    """The eight gait phases of each complete cycle (algorithms.md section 5, [A-P4]).
+
+    A cycle runs from a heel strike to the next heel strike of the same foot. Phase starts
+    (seconds) follow the standard event boundaries: initial contact = heel strike (a point);
+    loading response until contralateral toe off; mid stance until heel rise (the right end of
+    the heel's flat range); terminal stance until contralateral heel strike; pre-swing until
+    ipsilateral toe off; initial swing until the feet are adjacent (the swinging heel passes
+    the other heel along the walking direction); mid swing until the shank is vertical
+    (``shank_tilt`` crosses zero); terminal swing until the next heel strike.
+
+    Parameters
+    ----------
+    contacts : stances per side (one pass). t : (N,) s.
+    heel_prog : per side (N,) heel progression, mm, signed so that walking is increasing.
+    shank_tilt : per side (N,) knee-minus-ankle progression, mm (positive = knee ahead).
+
+    Returns
+    -------
+    {"L": [cycle, ...], "R": [...]}; a cycle maps each phase name to its start time and has
+    ``"end"``. Cycles with a missing boundary are left out.
+    """
+    out: dict[str, list[dict[str, float]]] = {}
+    for side in SIDES:
+        other = "R" if side == "L" else "L"
+        cyc = []
+        mine = contacts.get(side, [])
+        theirs = contacts.get(other, [])
+        for c, nxt in itertools.pairwise(mine):
+            hs, end = c.heel_strike, nxt.heel_strike
+            if not (_finite(hs) and _finite(end) and _finite(c.toe_off) and _finite(c.heel_rise)):
+                continue
+            c_to = [o.toe_off for o in theirs if _finite(o.toe_off) and hs < o.toe_off < c.toe_off]
+            c_hs = [
+                o.heel_strike
+                for o in theirs
+                if _finite(o.heel_strike) and hs < o.heel_strike < c.toe_off
+            ]
+            if not c_to or not c_hs:
+                continue
+            sw = (t > c.toe_off) & (t < end)
+            rel = heel_prog[side] - heel_prog[other]
+            adj = np.flatnonzero(sw & (rel >= 0))
+            tilt = shank_tilt[side]
+            vert = np.flatnonzero(sw & (tilt >= 0))
+            if adj.size == 0 or vert.size == 0:
+                continue
+            feet_adjacent = float(t[adj[0]])
+            later = vert[vert >= adj[0]]
+            tibia_vertical = float(t[later[0]]) if later.size else float("nan")
+            if not _finite(tibia_vertical):
+                continue
+            bounds = [
+                hs,
+                hs,
+                c_to[0],
+                min(max(c.heel_rise, c_to[0]), c_hs[0]),
+                c_hs[0],
+                c.toe_off,
+                feet_adjacent,
+                tibia_vertical,
+            ]
+            cycle = {name: round(float(b), 4) for name, b in zip(PHASES, bounds, strict=True)}
+            cycle["end"] = round(float(end), 4)
+            cyc.append(cycle)
+        out[side] = cyc
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# passes
+
+
+@dataclass(frozen=True)
+class Pass:
+    """One walk in one direction: sample range [start, stop) and the sign of progression."""
+
+    start: int
+    stop: int
+    direction: int
+
+
+def split_passes(
+    t: np.ndarray,
+    prog: np.ndarray,
+    min_speed_mm_s: float = 150.0,
+    window_s: float = 0.5,
+    min_duration_s: float = 0.6,
+) -> list[Pass]:
+    """Split a walk into passes by the direction of progression.
+
+    The body's progression (e.g. the median of the pelvis markers along the walking axis)
+    is differentiated over ``window_s`` (a least-squares slope over a centred window, so the
+    within-stride speed oscillation does not flip the sign); samples moving slower than
+    ``min_speed_mm_s`` (standing, turning) belong to no pass. Runs of one sign shorter than
+    ``min_duration_s`` are dropped.
+
+    Parameters
+    ----------
+    t : (N,) s. prog : (N,) mm, NaN = body not seen.
+
+    Returns
+    -------
+    Passes in time order.
+    """
+    t = np.asarray(t, dtype=float)
+    prog = np.asarray(prog, dtype=float)
+    n = len(t)
+    if n < 3:
+        return []
+    v = np.full(n, np.nan)
+    for i in range(n):
+        sel = np.abs(t - t[i]) <= window_s / 2
+        sel &= np.isfinite(prog)
+        if sel.sum() >= 3 and np.ptp(t[sel]) >= window_s / 3:
+            v[i] = np.polyfit(t[sel], prog[sel], 1)[0]
+    sign = np.zeros(n, dtype=int)
+    sign[v > min_speed_mm_s] = 1
+    sign[v < -min_speed_mm_s] = -1
+    out = []
+    for d in (1, -1):
+        for a, b in runs(sign == d):
+            if t[b] - t[a] >= min_duration_s:
+                out.append(Pass(a, b + 1, d))
+    out.sort(key=lambda p: p.start)
+    return out

@@ -1,0 +1,448 @@
+"""The simulated subject: markers from a real trial, derived markers, and a capsule body.
+
+Arrays: time axis 0; marker axis follows :data:`gaitflow.markers.MARKER_NAMES`; positions
+in mm in the trial's *standard frame* (x = walking direction, y = left, z = up, floor at
+z = 0), obtained with the trial's ``R_lab_to_std``. NaN = missing.
+
+Rules for markers a source trial lacks (all documented in docs/readme/simulator.md):
+
+- **Hip joint centre** (HJC): Harrington et al. (2007) regression from pelvis width PW
+  (ASIS to ASIS) and depth PD (mid-ASIS to mid-PSIS), in the pelvis frame (origin mid-ASIS,
+  x anterior, y up, z lateral): x = -0.24 PD - 9.9, y = -0.30 PW - 10.9, z = 0.33 PW + 7.3.
+- **HIP** (greater-trochanter marker): HJC + 85 mm lateral (femoral-neck offset ~60 mm plus
+  ~25 mm soft tissue) + marker radius, 15 mm down the thigh axis.
+- **PSI** from SACR: SACR -/+ 0.18 PW along the pelvis lateral axis (inter-PSIS distance
+  about 0.36 PW); **SACR** from PSI: their midpoint.
+- **HEE** from ANK and TOE: 0.42 |TOE - ANK| behind the ankle along the foot axis, 25 mm
+  lower, 20 mm medial (the posterior calcaneus, measured on the trials that have heels).
+- **SHO** from C7: C7 -/+ 0.13 H lateral and 0.02 H lower; without C7 from the pelvis
+  centre: 0.27 H up (Winter 2009 segment proportions; H = stature estimated as ASIS
+  height / 0.55).
+
+Markers are moved outwards along their segment's normal by the difference between the
+simulated and the source marker radius, so that every sphere sits on the skin.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gaitflow.errors import InputError
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+
+SIDES = ("L", "R")
+REQUIRED = ("ASI", "THI", "KNE", "TIB", "ANK", "TOE")
+
+# Capsule segments of the body; ``skin`` marks bare skin (head, forearms), the rest is
+# clothing. Attached markers decide the radius (see :func:`_fit_radii`).
+SEGMENTS: tuple[tuple[str, float, bool, tuple[str, ...]], ...] = (
+    # name, nominal radius mm, skin, markers that must stay outside
+    ("pelvis", 95.0, False, ("L_ASI", "R_ASI", "L_HIP", "R_HIP", "L_PSI", "R_PSI")),
+    ("sacrum", 60.0, False, ("L_PSI", "R_PSI", "L_ASI", "R_ASI")),
+    ("trunk", 125.0, False, ("L_SHO", "R_SHO", "L_PSI", "R_PSI", "L_ASI", "R_ASI")),
+    ("shoulders", 55.0, False, ("L_SHO", "R_SHO")),
+    ("neck", 50.0, True, ("L_SHO", "R_SHO")),
+    ("head", 95.0, True, ()),
+    ("L_thigh", 80.0, False, ("L_THI", "L_HIP")),
+    ("R_thigh", 80.0, False, ("R_THI", "R_HIP")),
+    ("L_thigh_lo", 58.0, False, ("L_THI", "L_KNE")),
+    ("R_thigh_lo", 58.0, False, ("R_THI", "R_KNE")),
+    ("L_shank", 55.0, False, ("L_TIB", "L_KNE")),
+    ("R_shank", 55.0, False, ("R_TIB", "R_KNE")),
+    ("L_shank_lo", 38.0, False, ("L_TIB", "L_ANK")),
+    ("R_shank_lo", 38.0, False, ("R_TIB", "R_ANK")),
+    ("L_foot", 26.0, False, ("L_HEE", "L_TOE")),
+    ("R_foot", 26.0, False, ("R_HEE", "R_TOE")),
+    ("L_upperarm", 45.0, False, ("L_SHO",)),
+    ("R_upperarm", 45.0, False, ("R_SHO",)),
+    ("L_forearm", 38.0, True, ()),
+    ("R_forearm", 38.0, True, ()),
+)
+SEGMENT_NAMES = tuple(s[0] for s in SEGMENTS)
+SEGMENT_INDEX = {n: i for i, n in enumerate(SEGMENT_NAMES)}
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One source trial in the standard frame, gaps filled, trimmed to complete frames.
+
+    Attributes
+    ----------
+    name : trial id.
+    t : (F,) s from the first kept frame.
+    markers : canonical name -> (F, 3) mm, standard frame.
+    knee_ref : (F, 2) source Plug-in Gait knee flexion (L, R) deg, NaN where absent.
+    events : list of (time_s, side, kind) with kind 'FS' or 'FO', inside [0, t[-1]].
+    meta : the source's metadata (source, licence, ...).
+    """
+
+    name: str
+    t: np.ndarray
+    markers: dict[str, np.ndarray]
+    knee_ref: np.ndarray
+    events: list[tuple[float, str, str]]
+    rate_hz: float
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def trials_dir() -> Path:
+    """Folder of the bundled trials (gaitflow/data/trials)."""
+    return Path(str(resources.files("gaitflow") / "data" / "trials"))
+
+
+def list_trials() -> list[str]:
+    """Ids of the bundled trials, from the bundled index.csv."""
+    path = trials_dir() / "index.csv"
+    with path.open(newline="") as fh:
+        return [row["trial_id"] for row in csv.DictReader(fh)]
+
+
+def _fill_gaps(x: np.ndarray) -> np.ndarray:
+    """Linear interpolation over interior NaN gaps of a (F, 3) trajectory; ends stay NaN."""
+    x = x.copy()
+    ok = np.isfinite(x).all(axis=1)
+    if ok.sum() < 2:
+        return x
+    idx = np.arange(len(x))
+    first, last = np.flatnonzero(ok)[[0, -1]]
+    inner = (~ok) & (idx > first) & (idx < last)
+    for k in range(3):
+        x[inner, k] = np.interp(idx[inner], idx[ok], x[ok, k])
+    return x
+
+
+def load_trial(name: str, folder: Path | None = None) -> Trial:
+    """Load a bundled trial (or one from ``folder``) into the standard frame.
+
+    Raises InputError naming the file when the trial lacks a required lower-limb marker.
+    """
+    path = (folder or trials_dir()) / f"{name}.npz"
+    if not path.exists():
+        raise InputError(path, f"no such trial; bundled trials: {', '.join(list_trials())}")
+    d = np.load(path, allow_pickle=True)
+    R = np.asarray(d["R_lab_to_std"], dtype=np.float64)
+    raw = np.asarray(d["markers"], dtype=np.float64) @ R.T
+    canon = [str(c) for c in d["canonical"]]
+    rate = float(d["rate_hz"])
+    markers = {c: _fill_gaps(raw[:, i]) for i, c in enumerate(canon) if c}
+    for side in SIDES:
+        for site in REQUIRED:
+            if f"{side}_{site}" not in markers:
+                raise InputError(path, f"trial lacks marker {side}_{site}")
+    if not any(k in markers for k in ("SACR", "L_PSI")):
+        raise InputError(path, "trial has neither SACR nor PSI markers")
+    # Keep the longest run of frames in which every marker the body needs is present.
+    need = [f"{s}_{m}" for s in SIDES for m in REQUIRED]
+    need += ["L_PSI", "R_PSI"] if "L_PSI" in markers else ["SACR"]
+    ok = np.all([np.isfinite(markers[n]).all(axis=1) for n in need], axis=0)
+    runs = np.flatnonzero(np.diff(np.r_[0, ok.astype(int), 0]))
+    starts, ends = runs[::2], runs[1::2]
+    if len(starts) == 0:
+        raise InputError(path, "no frame has every required marker")
+    j = int(np.argmax(ends - starts))
+    a, b = int(starts[j]), int(ends[j])
+    markers = {k: v[a:b] for k, v in markers.items()}
+    t = np.arange(b - a) / rate
+    knee = np.full((b - a, 2), np.nan)
+    if "ref_angle_names" in d.files:
+        names = [str(n) for n in d["ref_angle_names"]]
+        for k, side in enumerate(SIDES):
+            for cand in (f"{side}KneeAngles", f"{side}KneeAnglesV"):
+                if cand in names:
+                    knee[:, k] = np.asarray(d["ref_angles"], dtype=np.float64)[
+                        a:b, names.index(cand), 0
+                    ]
+                    break
+    events = []
+    for tt, side, kind in zip(d["event_times"], d["event_sides"], d["event_kinds"], strict=True):
+        tt = float(tt) - a / rate
+        if str(kind) in ("FS", "FO") and str(side) in SIDES and 0.0 <= tt <= t[-1]:
+            events.append((tt, str(side), str(kind)))
+    events.sort()
+    meta = json.loads(str(d["metadata"])) if "metadata" in d.files else {}
+    return Trial(name, t, markers, knee, events, rate, meta)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+@dataclass(frozen=True)
+class PelvisFrame:
+    """Per-frame pelvis axes (F, 3) and the Harrington hip joint centres."""
+
+    origin: np.ndarray
+    anterior: np.ndarray
+    left: np.ndarray
+    up: np.ndarray
+    hjc: dict[str, np.ndarray]
+    width: float
+    depth: float
+
+
+def pelvis_frame(m: dict[str, np.ndarray]) -> PelvisFrame:
+    """Pelvis axes and hip joint centres (Harrington et al. 2007) from ASI and PSI/SACR."""
+    origin = 0.5 * (m["L_ASI"] + m["R_ASI"])
+    back = 0.5 * (m["L_PSI"] + m["R_PSI"]) if "L_PSI" in m else m["SACR"]
+    left = _unit(m["L_ASI"] - m["R_ASI"])
+    ant = origin - back
+    ant = _unit(ant - (ant * left).sum(axis=1, keepdims=True) * left)
+    up = np.cross(ant, left)
+    pw = float(np.nanmedian(np.linalg.norm(m["L_ASI"] - m["R_ASI"], axis=1)))
+    pd = float(np.nanmedian(np.linalg.norm(origin - back, axis=1)))
+    hjc = {}
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        hjc[side] = (
+            origin
+            + (-0.24 * pd - 9.9) * ant
+            + (-0.30 * pw - 10.9) * up
+            + sgn * (0.33 * pw + 7.3) * left
+        )
+    return PelvisFrame(origin, ant, left, up, hjc, pw, pd)
+
+
+def derive_markers(trial: Trial, marker_radius: float) -> dict[str, np.ndarray]:
+    """All 20 markers (plus SACR, C7 and joint centres as ``*_HJC``...) for every frame.
+
+    Returns name -> (F, 3). See the module docstring for the rules.
+    """
+    m = dict(trial.markers)
+    if "L_PSI" not in m or "R_PSI" not in m:
+        pf0 = pelvis_frame({k: m[k] for k in ("L_ASI", "R_ASI", "SACR")})
+        for side, sgn in (("L", 1.0), ("R", -1.0)):
+            m[f"{side}_PSI"] = m["SACR"] + sgn * 0.18 * pf0.width * pf0.left
+    if "SACR" not in m:
+        m["SACR"] = 0.5 * (m["L_PSI"] + m["R_PSI"])
+    pf = pelvis_frame(m)
+    stature = float(np.nanmedian(m["L_ASI"][:, 2] + m["R_ASI"][:, 2]) / 2 / 0.55)
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        lat = sgn * pf.left  # outward for this side
+        # Heel from the foot axis when the source has none.
+        if f"{side}_HEE" not in m:
+            ank, toe = m[f"{side}_ANK"], m[f"{side}_TOE"]
+            ax = toe - ank
+            length = np.linalg.norm(ax, axis=1, keepdims=True)
+            fwd = _unit(ax)
+            down = _unit(np.cross(fwd, lat) * sgn * -1.0)
+            m[f"{side}_HEE"] = ank - 0.42 * length * fwd + 25.0 * down - 20.0 * lat
+        hjc = pf.hjc[side]
+        # Joint centres medial of the lateral markers by half the joint width plus the
+        # marker radius, as in Plug-in Gait (knee width 100 mm, ankle width 70 mm).
+        kjc = m[f"{side}_KNE"] - (50.0 + marker_radius) * lat
+        thigh_ax = _unit(kjc - hjc)
+        m[f"{side}_HJC"] = hjc
+        m[f"{side}_KJC"] = kjc
+        m[f"{side}_AJC"] = m[f"{side}_ANK"] - (35.0 + marker_radius) * lat
+        m[f"{side}_HIP"] = hjc + (85.0 + marker_radius) * lat + 15.0 * thigh_ax
+        if f"{side}_SHO" not in m:
+            if "C7" in m and np.isfinite(m["C7"]).all():
+                m[f"{side}_SHO"] = m["C7"] + 0.13 * stature * lat - 0.02 * stature * pf.up
+            else:
+                centre = 0.25 * (m["L_ASI"] + m["R_ASI"] + m["L_PSI"] + m["R_PSI"])
+                m[f"{side}_SHO"] = (
+                    centre + 0.27 * stature * np.array([0, 0, 1.0]) + 0.13 * stature * lat
+                )
+    if "C7" not in m or not np.isfinite(m["C7"]).all():
+        m["C7"] = 0.5 * (m["L_SHO"] + m["R_SHO"]) + 0.02 * stature * pf.up - 40.0 * pf.anterior
+    m["_stature"] = np.full((len(trial.t), 3), stature)
+    m["_pelvis_left"] = pf.left
+    m["_pelvis_ant"] = pf.anterior
+    return m
+
+
+def _thigh_angle(hjc: np.ndarray, kjc: np.ndarray, fwd: np.ndarray) -> np.ndarray:
+    """Sagittal thigh angle (rad), positive when the knee is ahead of the hip."""
+    v = kjc - hjc
+    return np.arctan2((v * fwd).sum(axis=1), -v[:, 2])
+
+
+@dataclass(frozen=True)
+class Body:
+    """A posed body for every source frame, standard frame, mm.
+
+    Attributes
+    ----------
+    t : (F,) s.
+    markers : (F, 20, 3) marker centres (MARKER_NAMES order).
+    cap_a, cap_b : (F, S, 3) capsule end points (SEGMENT_NAMES order).
+    radius : (S,) capsule radii.
+    skin : (S,) bool, bare skin (else clothing) for the IR albedo.
+    heel : (F, 2, 3) L/R heel marker centres (same as markers, for convenience).
+    """
+
+    t: np.ndarray
+    markers: np.ndarray
+    cap_a: np.ndarray
+    cap_b: np.ndarray
+    radius: np.ndarray
+    skin: np.ndarray
+    stature: float
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Markers (K, 20, 3) and capsule ends (K, S, 3) x2 at times t (K,), linear."""
+        t = np.clip(np.asarray(t, dtype=np.float64), self.t[0], self.t[-1])
+        if len(self.t) == 1:
+            k = len(t)
+            return (
+                np.repeat(self.markers, k, 0),
+                np.repeat(self.cap_a, k, 0),
+                np.repeat(self.cap_b, k, 0),
+            )
+        i = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 2)
+        w = ((t - self.t[i]) / (self.t[i + 1] - self.t[i]))[:, None, None]
+
+        def lerp(x: np.ndarray) -> np.ndarray:
+            return x[i] * (1 - w) + x[i + 1] * w
+
+        return lerp(self.markers), lerp(self.cap_a), lerp(self.cap_b)
+
+
+def _segment_ends(
+    m: dict[str, np.ndarray], swing_gain: float, static: bool, marker_radius: float
+) -> dict:
+    """Capsule end points (F, 3) per segment, with swinging arms."""
+    left, ant = m["_pelvis_left"], m["_pelvis_ant"]
+    stature = float(m["_stature"][0, 0])
+    z = np.array([0.0, 0.0, 1.0])
+    fwd = _unit(ant - (ant @ z)[:, None] * z)
+    ends: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    hjc_mid = 0.5 * (m["L_HJC"] + m["R_HJC"])
+    psi_mid = 0.5 * (m["L_PSI"] + m["R_PSI"])
+    sho_mid = 0.5 * (m["L_SHO"] + m["R_SHO"])
+    ends["pelvis"] = (m["L_HJC"] + 10 * left, m["R_HJC"] - 10 * left)
+    sac = psi_mid - 75.0 * fwd - 15.0 * z
+    ends["sacrum"] = (sac + 35 * left, sac - 35 * left)
+    trunk_lo = hjc_mid + 170.0 * z - 15.0 * fwd
+    trunk_hi = sho_mid - 70.0 * z - 20.0 * fwd
+    ends["trunk"] = (trunk_lo, trunk_hi)
+    sjc = {s: m[f"{s}_SHO"] - 55.0 * z for s in SIDES}
+    ends["shoulders"] = (sjc["L"] - 40 * left, sjc["R"] + 40 * left)
+    neck_lo = sho_mid - 20.0 * fwd
+    head_c = sho_mid + 0.13 * stature * z + 15.0 * fwd
+    ends["neck"] = (neck_lo, head_c - 60.0 * z)
+    ends["head"] = (head_c - 20.0 * z, head_c + 20.0 * z)
+    for s in SIDES:
+        # Thigh and shank taper: two capsules each (proximal thick, distal thin).
+        hjc, kjc, ajc = m[f"{s}_HJC"], m[f"{s}_KJC"], m[f"{s}_AJC"]
+        ends[f"{s}_thigh"] = (hjc, hjc + 0.6 * (kjc - hjc))
+        ends[f"{s}_thigh_lo"] = (hjc + 0.45 * (kjc - hjc), kjc)
+        ends[f"{s}_shank"] = (kjc, kjc + 0.5 * (ajc - kjc))
+        ends[f"{s}_shank_lo"] = (kjc + 0.4 * (ajc - kjc), ajc)
+        hee, toe = m[f"{s}_HEE"], m[f"{s}_TOE"]
+        ax = _unit(toe - hee)
+        up = _unit(np.cross(ax, left))  # foot's dorsal direction
+        inset = 26.0 + marker_radius + 2.0
+        ends[f"{s}_foot"] = (hee + inset * ax, toe - inset * up - 10.0 * ax)
+    # Arms: pendulums in the sagittal plane driven by the contralateral thigh, so the
+    # left arm swings forward with the right leg (counter to the legs).
+    up_len, fore_len = 0.186 * stature, 0.146 * stature + 0.08 * stature
+    for s, other, sgn in (("L", "R", 1.0), ("R", "L", -1.0)):
+        lat = sgn * left
+        if static:
+            # Arms folded across the chest so that every pelvis and thigh marker is visible
+            # in the static pose.
+            shoulder_ang = np.full(len(fwd), np.radians(40.0))
+            elbow = np.full(len(fwd), np.radians(100.0))
+            abduct = np.radians(10.0)
+        else:
+            th = _thigh_angle(m[f"{other}_HJC"], m[f"{other}_KJC"], fwd)
+            shoulder_ang = swing_gain * (th - np.median(th))
+            elbow = np.radians(15.0) + 0.6 * np.clip(shoulder_ang, 0, None)
+            abduct = np.radians(9.0)
+        zz = np.broadcast_to(z, fwd.shape)
+        upper = _unit(
+            np.sin(shoulder_ang)[:, None] * fwd
+            - (np.cos(shoulder_ang) * np.cos(abduct))[:, None] * zz
+            + np.sin(abduct) * lat
+        )
+        elbow_p = sjc[s] + up_len * upper
+        fa = shoulder_ang + elbow
+        fore_dir = _unit(np.sin(fa)[:, None] * fwd - np.cos(fa)[:, None] * zz + 0.05 * lat)
+        if static:
+            # Forearm towards the body midline, across the chest.
+            fore_dir = _unit(0.45 * fwd - 0.85 * lat + 0.25 * zz)
+        ends[f"{s}_upperarm"] = (sjc[s], elbow_p)
+        ends[f"{s}_forearm"] = (elbow_p, elbow_p + fore_len * fore_dir)
+    return ends
+
+
+def _dist_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (F,) from points p (F, 3) to segments a-b (F, 3)."""
+    ab = b - a
+    w = np.clip(((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-9), 0, 1)
+    return np.linalg.norm(p - (a + w[:, None] * ab), axis=1)
+
+
+def build_body(
+    trial: Trial,
+    marker_radius: float,
+    source_marker_radius: float = 7.0,
+    swing_gain: float = 0.7,
+    static: bool = False,
+) -> Body:
+    """Markers, capsules and radii for every frame of ``trial``.
+
+    A segment's radius is its nominal radius, reduced where needed so that every marker it
+    must not swallow stays outside it by the marker radius plus 2 mm (1st percentile over
+    the trial), which puts each marker sphere on the skin.
+    """
+    m = derive_markers(trial, marker_radius)
+    ends = _segment_ends(m, swing_gain, static, marker_radius)
+    # Push markers outwards by the change of marker radius, along the normal of the closest
+    # point on their own segment's axis.
+    grow = marker_radius - source_marker_radius
+    own = {
+        "ASI": "pelvis",
+        "PSI": "sacrum",
+        "HIP": "pelvis",
+        "SHO": "shoulders",
+        "THI": "thigh",
+        "KNE": "thigh_lo",
+        "TIB": "shank",
+        "ANK": "shank_lo",
+        "HEE": "foot",
+        "TOE": "foot",
+    }
+    markers = np.empty((len(trial.t), len(MARKER_NAMES), 3))
+    for name in MARKER_NAMES:
+        side, site = name.split("_")
+        seg = own[site] if site in ("ASI", "PSI", "HIP", "SHO") else f"{side}_{own[site]}"
+        a, b = ends[seg]
+        p = m[name]
+        ab = b - a
+        w = np.clip(((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-9), 0, 1)
+        normal = _unit(p - (a + w[:, None] * ab))
+        markers[:, MARKER_INDEX[name]] = p + (0.0 if site == "HIP" else grow) * normal
+    radii = np.empty(len(SEGMENTS))
+    for k, (name, nominal, _skin, keep_out) in enumerate(SEGMENTS):
+        a, b = ends[name]
+        r = nominal
+        for mk in keep_out:
+            d = _dist_to_segment(markers[:, MARKER_INDEX[mk]], a, b)
+            r = min(r, float(np.percentile(d, 1)) - marker_radius - 2.0)
+        radii[k] = max(r, 25.0)
+    cap_a = np.stack([ends[n][0] for n in SEGMENT_NAMES], axis=1)
+    cap_b = np.stack([ends[n][1] for n in SEGMENT_NAMES], axis=1)
+    skin = np.array([s[2] for s in SEGMENTS])
+    return Body(trial.t.copy(), markers, cap_a, cap_b, radii, skin, float(m["_stature"][0, 0]))
+
+
+def knee_flexion(markers: np.ndarray) -> np.ndarray:
+    """Knee flexion (..., 2) deg (L, R) = 180 - angle HIP-KNE-ANK from markers (..., 20, 3)."""
+    out = []
+    for s in SIDES:
+        hip = markers[..., MARKER_INDEX[f"{s}_HIP"], :]
+        kne = markers[..., MARKER_INDEX[f"{s}_KNE"], :]
+        ank = markers[..., MARKER_INDEX[f"{s}_ANK"], :]
+        u, v = hip - kne, ank - kne
+        c = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+        out.append(180.0 - np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return np.stack(out, axis=-1)

@@ -1,0 +1,104 @@
+"""Every knob of the Kinect v2 simulator in one frozen dataclass.
+
+Units: mm, s, degrees, IR amplitude counts (0..65535). Defaults follow the clinical set-up
+of the paper (sensor about 0.8 m high, walking line 2.5-3 m away, about 4 m of walkway)
+and published Kinect v2 characteristics; each default says where it comes from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from gaitflow.camera import Camera
+from gaitflow.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Simulator configuration.
+
+    Geometry: the world frame has x along the walkway (left to right in the image), y away
+    from the camera, z up, origin on the floor below the camera's optical centre.
+    """
+
+    camera: Camera = field(default_factory=Camera)
+    camera_height_mm: float = 800.0
+    walk_distance_mm: float = 2750.0  # camera to the walking line (pelvis path)
+    tilt_deg: float = 1.5  # positive = looking down
+    pan_deg: float = 1.0  # positive = optical axis turned towards +x
+    roll_deg: float = 0.4
+    back_wall_mm: float = 1500.0  # wall this far behind the walking line; 0 = none
+    marker_diameter_mm: float = 25.0
+    source_marker_diameter_mm: float = 14.0  # Plug-in Gait markers of the source labs
+    # Exposure and anti-aliasing.
+    exposure_ms: float = 12.0  # ToF integration window (motion blur)
+    blur_samples: int = 4  # time samples over the exposure
+    supersample: int = 4  # sub-pixel samples per axis for marker coverage
+    # IR radiometry: I = ir_gain * albedo * cos(incidence) / (r / 1 m)^2 * vignetting.
+    ir_gain: float = 30000.0
+    skin_albedo: float = 0.55
+    clothes_albedo: float = 0.4
+    floor_albedo: float = 0.3
+    wall_albedo: float = 0.45
+    marker_gain: float = 3.0  # marker radiance at 2.5 m, in multiples of saturation
+    vignetting: float = 0.35  # relative IR loss at the image corners
+    ir_read_noise: float = 12.0  # counts
+    ir_shot_noise: float = 1.5  # variance per count
+    ir_min_valid: float = 30.0  # below this amplitude the depth is invalid (0)
+    # Depth.
+    depth_noise_scale: float = 1.0  # multiplies the Fankhauser et al. (2015) sigma
+    min_range_mm: float = 500.0
+    max_range_mm: float = 4500.0
+    max_incidence_deg: float = 82.0  # grazing surfaces return no depth
+    edge_jump_mm: float = 80.0  # a neighbour this much farther makes a depth edge
+    flying_prob: float = 0.5  # an edge pixel becomes a mixed-depth ("flying") pixel
+    edge_invalid_prob: float = 0.25  # an edge pixel becomes invalid (0)
+    hole_coverage: float = 0.35  # marker coverage above which depth is 0
+    # Frames.
+    drop_prob: float = 0.01
+    jitter_ms: float = 0.4
+    # Scene.
+    stray_reflectors: bool = True
+    # Subject.
+    subject_id: str = "S01"
+    arm_swing_gain: float = 0.7  # shoulder angle / contralateral thigh angle
+    speed_factor: float = 1.0  # >1 plays the trial faster
+    # Protocol durations.
+    calibration_markers: int = 4
+    calib_still_s: float = 1.2
+    calib_place_s: float = 2.0
+    static_s: float = 3.0
+    turn_s: float = 1.5
+    lead_in_s: float = 0.3  # still standing before each pass
+    n_walks: int = 1
+    show_operator: bool = True
+
+    def __post_init__(self) -> None:
+        if not 20.0 <= self.marker_diameter_mm <= 30.0:
+            raise ConfigError(
+                f"SimConfig.marker_diameter_mm={self.marker_diameter_mm} is outside 20..30 mm"
+            )
+        if not 0.0 <= self.drop_prob < 0.5:
+            raise ConfigError(f"SimConfig.drop_prob={self.drop_prob} is outside [0, 0.5)")
+        if self.supersample < 1 or self.blur_samples < 1:
+            raise ConfigError("SimConfig.supersample and blur_samples must be >= 1")
+        if self.speed_factor <= 0:
+            raise ConfigError(f"SimConfig.speed_factor={self.speed_factor} must be positive")
+        if self.n_walks < 1:
+            raise ConfigError(f"SimConfig.n_walks={self.n_walks} must be >= 1")
+
+    @property
+    def marker_radius_mm(self) -> float:
+        return 0.5 * self.marker_diameter_mm
+
+    def with_(self, **changes: Any) -> SimConfig:
+        """A copy with some fields changed."""
+        return replace(self, **changes)
+
+    @classmethod
+    def quick(cls, **changes: Any) -> SimConfig:
+        """Short protocol durations for tests and benchmarks."""
+        base = dict(calib_still_s=0.4, calib_place_s=0.6, static_s=0.5, turn_s=0.6, lead_in_s=0.1)
+        base.update(changes)
+        return cls(**base)

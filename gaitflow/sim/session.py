@@ -1,0 +1,286 @@
+"""Simulate a whole clinical session: calibration, static pose and walking trials.
+
+``simulate_session(trial, seed, config)`` returns a :class:`SimSession` whose recordings
+yield ``(RawFrame, GroundTruth)`` per frame, lazily. Each frame is rendered with its own
+random generator seeded by (seed, recording, frame index), so output is deterministic for
+a seed and any recording can be iterated more than once.
+
+Timing: frames are nominally 1/30 s apart; the capture time has a small Gaussian jitter,
+and frames are dropped now and then (never the first or last one), leaving gaps in the
+frame index. Ground truth is rendered at the actual capture time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gaitflow.camera import Camera
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+from gaitflow.schemas.raw import RawFrame
+from gaitflow.schemas.truth import GroundTruth
+from gaitflow.sim.body import build_body, knee_flexion, load_trial
+from gaitflow.sim.config import SimConfig
+from gaitflow.sim.render import Renderer
+from gaitflow.sim.truth import spatiotemporal, visibility
+from gaitflow.sim.walk import CalibrationMotion, StaticMotion, WalkMotion
+
+CAMERA_ID = "cam0"
+EPOCH_NS = 1_700_000_000_000_000_000
+RECORDING_GAP_NS = 60_000_000_000  # a minute between recordings
+
+
+@dataclass(frozen=True)
+class FrameTime:
+    """Frames actually delivered: index (K,), capture time (K,) s from the first frame."""
+
+    index: np.ndarray
+    time_s: np.ndarray
+
+
+def frame_times(duration_s: float, fps: float, cfg: SimConfig, seed: int, rec: int) -> FrameTime:
+    """Frame indices and capture times of a recording, with jitter and drops."""
+    n = int(np.floor(duration_s * fps)) + 1
+    rng = np.random.default_rng([seed, rec, 1_000_003])
+    jitter = np.clip(rng.normal(0.0, cfg.jitter_ms / 1000.0, n), -0.004, 0.004)
+    jitter[0] = 0.0
+    t = np.arange(n) / fps + jitter
+    keep = rng.random(n) >= cfg.drop_prob
+    keep[0] = keep[-1] = True
+    idx = np.flatnonzero(keep)
+    return FrameTime(idx, t[idx])
+
+
+class Recording:
+    """One simulated recording: iterate it for ``(RawFrame, GroundTruth)`` pairs."""
+
+    def __init__(
+        self, session: SimSession, name: str, motion: Any, rec: int, kind: str
+    ) -> None:
+        self.session, self.name, self.motion, self.rec, self.kind = (
+            session,
+            name,
+            motion,
+            rec,
+            kind,
+        )
+        cfg = session.config
+        self.times = frame_times(motion.duration_s, cfg.camera.fps, cfg, session.seed, rec)
+        self.t0_ns = EPOCH_NS + rec * RECORDING_GAP_NS
+
+    def __len__(self) -> int:
+        return len(self.times.index)
+
+    def __iter__(self) -> Iterator[tuple[RawFrame, GroundTruth]]:
+        n = len(self)
+        for k in range(n):
+            yield self.frame(k, last=k == n - 1)
+
+    def __call__(self) -> Iterator[tuple[RawFrame, GroundTruth]]:
+        return iter(self)
+
+    def frame(self, k: int, last: bool = False) -> tuple[RawFrame, GroundTruth]:
+        """The k-th delivered frame (not the k-th index: dropped frames are skipped)."""
+        ses = self.session
+        cfg = ses.config
+        index = int(self.times.index[k])
+        t = float(self.times.time_s[k])
+        rng = np.random.default_rng([ses.seed, self.rec, index])
+        pose = self.motion.pose(t, cfg.exposure_ms / 1000.0, cfg.blur_samples)
+        out = ses.renderer.render(pose, rng)
+        capture_ns = self.t0_ns + round(t * 1e9)
+        raw = RawFrame(
+            header=RawFrame.make_header(CAMERA_ID, self.name, index, capture_ns, last=last),
+            ir=out.ir,
+            depth=out.depth,
+        )
+        truth = self._truth(raw, pose, out, t)
+        return raw, truth
+
+    def _truth(self, raw: RawFrame, pose: Any, out: Any, t: float) -> GroundTruth:
+        ses = self.session
+        cfg = ses.config
+        nb = pose.spheres.shape[0]
+        pos_w = pose.spheres[nb // 2]
+        n = len(MARKER_NAMES)
+        position = np.full((n, 3), np.nan)
+        pixel = np.full((n, 2), np.nan)
+        visible = np.zeros(n, dtype=bool)
+        occluded = np.zeros(n, dtype=bool)
+        knee = np.full(2, np.nan)
+        knee_ref = [float("nan"), float("nan")]
+        pass_name = ""
+        fraction = [0.0] * n
+        if self.kind in ("walk", "static"):
+            fraction = [float(v) for v in out.seen]
+            position = ses.renderer.to_cam(pos_w)
+            pixel = ses.camera.project(position)
+            visible, occluded = visibility(out.seen, out.in_view)
+            knee = knee_flexion(pos_w[None])[0]
+            knee_ref = [float(v) for v in self.motion.knee_ref(np.array([t]))[0]]
+            if self.kind == "walk":
+                wm = self.motion
+                pass_name = (
+                    "out"
+                    if t <= wm.pass_dur
+                    else ("turn" if t < wm.passes[1].t0 else "back")
+                )
+        half = 0.5 / cfg.camera.fps
+        events = [
+            [side, kind, float(te)]
+            for te, side, kind, _p in self.motion.events()
+            if t - half <= te < t + half
+        ]
+        return GroundTruth.follow(
+            raw.header,
+            position=position,
+            pixel=pixel,
+            visible=visible,
+            occluded=occluded,
+            knee_flexion=knee,
+            time_s=t,
+            events=events,
+            knee_flexion_ref=knee_ref,
+            pass_name=pass_name,
+            visible_fraction=fraction,
+        )
+
+    def frames(self) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+        """``(index, timestamp_ns, ir, depth)`` tuples, the SessionWriter's input."""
+        for raw, _truth in self:
+            yield raw.header.frame, raw.header.capture_ns, raw.ir, raw.depth
+
+
+@dataclass
+class SimSession:
+    """A simulated session.
+
+    Attributes
+    ----------
+    camera : the intrinsics.
+    camera_json : the session folder's camera.json document.
+    recordings : name -> :class:`Recording` ("calibration", "static", "walk-01", ...).
+    """
+
+    trial: str
+    seed: int
+    config: SimConfig
+    camera: Camera
+    renderer: Renderer
+    camera_json: dict[str, Any]
+    recordings: dict[str, Recording] = field(default_factory=dict)
+
+    def truth_summary(self, name: str) -> dict[str, Any]:
+        """Trial-level ground truth of one recording (JSON-ready)."""
+        rec = self.recordings[name]
+        cfg = self.config
+        r = self.renderer
+        doc: dict[str, Any] = {
+            "recording": name,
+            "kind": rec.kind,
+            "source_trial": self.trial,
+            "seed": self.seed,
+            "fps": cfg.camera.fps,
+            "n_frames": len(rec),
+            "frame_index": [int(i) for i in rec.times.index],
+            "dropped": int(rec.times.index[-1] + 1 - len(rec)),
+            "duration_s": float(rec.motion.duration_s),
+            "first_timestamp_ns": int(rec.t0_ns),
+            "marker_names": list(MARKER_NAMES),
+            "marker_diameter_mm": cfg.marker_diameter_mm,
+            "floor_plane_cam": [float(v) for v in r.floor_plane_cam()],
+            "camera_pose": {
+                "R_world_to_cam": r.R.tolist(),
+                "centre_world_mm": r.C.tolist(),
+                "world": "x along the walkway, y away from the camera, z up, floor z=0",
+            },
+        }
+        if rec.kind == "calibration":
+            m = rec.motion
+            cam_pts = r.to_cam(m.markers)
+            doc["calibration_markers_cam"] = cam_pts.tolist()
+            doc["calibration_markers_px"] = self.camera.project(cam_pts).tolist()
+            doc["calibration_markers_world"] = m.markers.tolist()
+            doc["placed_at_s"] = [float(v) for v in m.t_drop]
+        if rec.kind == "walk":
+            wm = rec.motion
+            events = wm.events()
+            doc["events"] = [
+                {"time_s": float(t), "side": s, "kind": k, "pass": p} for t, s, k, p in events
+            ]
+            doc["passes"] = [
+                {
+                    "name": p.name,
+                    "start_s": float(p.t0),
+                    "end_s": float(p.t0 + wm.pass_dur),
+                    "direction_world": (p.R @ [1.0, 0, 0]).tolist(),
+                    "side_facing_camera": "R" if p.name == "out" else "L",
+                }
+                for p in wm.passes
+            ]
+            directions = {p.name: p.R @ np.array([1.0, 0.0, 0.0]) for p in wm.passes}
+            hee = [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]]
+
+            def heel_at(t: np.ndarray) -> np.ndarray:
+                return wm.markers_caps(t)[0][:, hee]
+
+            doc["spatiotemporal"] = spatiotemporal(events, heel_at, directions)
+            doc["source"] = {
+                k: wm.trial.meta.get(k) for k in ("source", "licence", "subject", "condition")
+            }
+        if rec.kind == "static":
+            m = rec.motion
+            doc["standing_at_world"] = (m.T + [0.0, 0.0, 0.0]).tolist()
+        return doc
+
+    def walks(self) -> list[str]:
+        return [n for n in self.recordings if n.startswith("walk-")]
+
+
+def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None) -> SimSession:
+    """Build a simulated session from a bundled trial (nothing is rendered yet).
+
+    Parameters
+    ----------
+    trial : a bundled trial id (:func:`gaitflow.sim.list_trials`).
+    seed : random seed; the same seed gives byte-identical frames.
+    config : simulator knobs; default :class:`SimConfig`.
+    """
+    cfg = config or SimConfig()
+    src = load_trial(trial)
+    body = build_body(
+        src,
+        cfg.marker_radius_mm,
+        cfg.source_marker_diameter_mm / 2,
+        cfg.arm_swing_gain,
+    )
+    renderer = Renderer(cfg, bank_seed=seed)
+    cam = cfg.camera
+    camera_json = cam.to_json(
+        marker_diameter_mm=cfg.marker_diameter_mm,
+        calibration_markers=cfg.calibration_markers,
+        subject={"id": cfg.subject_id},
+    )
+    ses = SimSession(trial, seed, cfg, cam, renderer, camera_json)
+    walk = WalkMotion(src, body, cfg)
+    ses.recordings["calibration"] = Recording(
+        ses, "calibration", CalibrationMotion(cfg, seed), 0, "calibration"
+    )
+    # The start point is where the outward pass begins, moved inside the field of view
+    # (clinics tape it where the camera sees the whole subject).
+    start = walk.start_point()
+    D = cfg.walk_distance_mm
+    row = int(round(cam.cy))
+    x_lo = renderer.rx[row, 0] * D + D * np.tan(np.radians(cfg.pan_deg))
+    x_hi = renderer.rx[row, -1] * D + D * np.tan(np.radians(cfg.pan_deg))
+    start[0] = np.clip(start[0], x_lo + 600.0, x_hi - 600.0)
+    ses.recordings["static"] = Recording(
+        ses, "static", StaticMotion(src, cfg, start, seed), 1, "static"
+    )
+    for k in range(cfg.n_walks):
+        name = f"walk-{k + 1:02d}"
+        ses.recordings[name] = Recording(ses, name, walk, 2 + k, "walk")
+    return ses

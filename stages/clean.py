@@ -1,0 +1,330 @@
+"""Stage ``clean``: invalid pixels and interfering reflectors (paper section III-A).
+
+Input: ``raw`` frames; side input ``calibration`` (for static and walk trials). Output:
+``clean`` (:class:`CleanFrame`): IR with interference zeroed, depth with invalid pixels set
+to 0, the mask (1 = masked interferer) and the session's camera intrinsics copied from the
+calibration record (so that locate, which has no calibration input, can use them).
+
+Array conventions: images (row, col); pixels (u, v) = (column, row); depth mm, 0 = invalid;
+IR 0..65535.
+
+The paper leaves the interference model unspecified [A-0]. Our reading (Rec. of
+``../shared/reference/algorithms.md`` section 3.0, with departures explained):
+
+- **Invalid pixels.** Depth outside ``[min_depth, max_depth]`` becomes 0. IR is kept
+  everywhere: a marker's IR is valid exactly where its depth is not.
+- **What counts as interference.** A bright component (IR above the anchor threshold ``w``
+  of the calibration record, or a value derived from the first frame) whose centroid stays
+  within ``still_tol`` px for ``still_frames`` frames (gaps of up to ``still_gap`` frames
+  allowed, for someone walking past it). Stillness is the only cue that tells a stray
+  reflector from a body marker without labels. Body markers of a walking subject move: a
+  foot in stance rolls over heel and toe, so its markers drift by more than ``still_tol``
+  (0.2 px, against the hundredths of a pixel of noise jitter of a fixed reflector) well
+  within ``still_frames`` (1 s). A *standing* subject's markers do not, so new interferers are
+  not learned in static trials (``learn_static``), only in calibration frames (the empty
+  walkway, when the graph feeds them to this stage; nothing is published for them) and walk
+  trials. Tracks persist across trials of a camera: the scene does not change between
+  them. The calibration record's floor markers are seeded as interferers
+  (``mask_floor_markers``): they are known, still and not body markers, and would otherwise
+  count against Alg. 1's n.
+- **Tracking.** A constant-position Kalman filter (filterpy) on each region's box
+  (centre u, v and size w, h, px). A frame's measurement is a component near the predicted
+  centre of similar size; a track with no measurement for ``miss_frames`` frames is
+  dropped (the reflector was removed); until then its prediction stays masked (the subject
+  walking in front of it).
+- **Masking and lifting.** Each kept track's box, dilated by ``box_margin``, is zeroed in
+  IR and set to 1 in ``mask``. A bright component that overlaps a box but is not that
+  track's measurement (a moving marker passing over the reflector) lifts the box for this
+  frame, so that the marker is not cut; the paper lifts on the tracked marker's prediction,
+  which this stage, upstream of labelling, does not have.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from filterpy.kalman import predict as kf_predict
+from filterpy.kalman import update as kf_update
+from gaitflow.schemas import CalibrationRecord, CleanFrame, RawFrame
+from gaitflow.stages.base import Inputs, StageSpec
+from gaitflow.stages.detect import E_MAX, block_max, compact_roi, components, initial_w
+
+from gaitflow.markers import trial_kind
+from gaitflow.params import Param, ParamSet
+
+PARAMS = ParamSet(
+    "clean",
+    (
+        Param("min_depth", float, 300.0, "mm", "depths below this are invalid", low=0.0),
+        Param("max_depth", float, 8000.0, "mm", "depths above this are invalid", low=1.0),
+        Param(
+            "bright_threshold",
+            float,
+            0.0,
+            "IR",
+            "bright-component level; 0 = the calibration w, else derived from the first frame",
+            low=0.0,
+            high=E_MAX,
+        ),
+        Param("min_area", int, 2, "px", "smallest bright component considered", low=1),
+        Param(
+            "still_frames",
+            int,
+            30,
+            "frames",
+            "a component still this long becomes an interferer",
+            low=2,
+        ),
+        Param("still_tol", float, 0.2, "px", "centroid motion that still counts as still", low=0),
+        Param(
+            "still_gap",
+            int,
+            5,
+            "frames",
+            "a still candidate survives this many frames unseen (someone walks past it)",
+            low=0,
+        ),
+        Param("miss_frames", int, 45, "frames", "drop a track unseen this long", low=1),
+        Param("box_margin", int, 2, "px", "dilation of a masked box", low=0),
+        Param("kf_q", float, 0.01, "px^2", "KF process noise per frame (constant position)"),
+        Param("kf_r", float, 0.25, "px^2", "KF measurement noise of a box coordinate"),
+        Param("learn_static", bool, False, "-", "learn new interferers in static trials"),
+        Param("mask_floor_markers", bool, True, "-", "mask the calibration floor markers"),
+        Param("floor_marker_radius", float, 4.0, "px", "box half-size of a seeded floor marker"),
+        Param("max_tracks", int, 32, "tracks", "most interferers tracked at once", low=0),
+        Param("max_candidates", int, 256, "-", "most still-candidates followed at once", low=1),
+    ),
+)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A bright component seen still at ``anchor`` (u, v) px for ``count`` frames."""
+
+    anchor: tuple[float, float]
+    count: int
+    radius: float
+    unseen: int = 0
+
+
+@dataclass(frozen=True)
+class Track:
+    """An interferer: constant-position KF state x = (u, v, w, h) px and covariance P."""
+
+    x: np.ndarray = field(repr=False)  # (4,)
+    P: np.ndarray = field(repr=False)  # (4, 4)
+    misses: int = 0
+    source: str = "still"  # still | floor
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.x[:2]
+
+
+@dataclass(frozen=True)
+class CameraClean:
+    """Clean state of one camera; tracks persist across trials."""
+
+    trial: str = ""
+    level: float = 0.0  # bright threshold in use
+    candidates: tuple[Candidate, ...] = ()
+    tracks: tuple[Track, ...] = ()
+    seeded: int = -1  # capture_ns of the calibration record whose floor markers were seeded
+
+
+@dataclass(frozen=True)
+class CleanState:
+    params: Mapping[str, Any]
+    cameras: Mapping[str, CameraClean] = field(default_factory=dict)
+    learned: int = 0  # interferers promoted so far (all cameras)
+
+
+@dataclass(frozen=True)
+class CleanResult:
+    ir: np.ndarray  # (H, W) uint16
+    depth: np.ndarray  # (H, W) uint16
+    mask: np.ndarray  # (H, W) uint8
+    state: CameraClean
+    lifted: int
+    promoted: int
+
+
+def _box(u: float, v: float, r: float) -> np.ndarray:
+    s = 2.0 * r + 1.0
+    return np.array([u, v, s, s])
+
+
+def _new_track(box: np.ndarray, p: Mapping[str, Any], source: str) -> Track:
+    return Track(box.astype(np.float64), np.eye(4) * p["kf_r"], 0, source)
+
+
+def clean_frame(
+    ir: np.ndarray,
+    depth: np.ndarray,
+    cs: CameraClean,
+    learn: bool,
+    p: Mapping[str, Any],
+) -> CleanResult:
+    """Clean one frame (pure).
+
+    Parameters
+    ----------
+    ir, depth : (H, W) uint16 raw IR and depth.
+    cs : this camera's state, with ``cs.level`` set.
+    learn : may still components be promoted to interferers in this frame.
+    p : resolved :data:`PARAMS`.
+    """
+    d = depth.copy()
+    d[(d < p["min_depth"]) | (d > p["max_depth"])] = 0
+    roi = compact_roi(ir, cs.level, 8)
+    comps = components(roi, cs.level, p["min_area"], 8)
+    cen = comps.centroid
+    rad = comps.region_radius
+    Fm, Hm = np.eye(4), np.eye(4)
+    Q, R = np.eye(4) * p["kf_q"], np.eye(4) * p["kf_r"]
+    used = np.zeros(comps.count, dtype=bool)
+    tracks: list[Track] = []
+    lift: list[bool] = []
+    # Tracks first: predict, then take the nearest still component of similar size.
+    for t in cs.tracks:
+        x, P = kf_predict(t.x, t.P, Fm, Q)
+        match = -1
+        if comps.count:
+            dist = np.hypot(cen[:, 0] - x[0], cen[:, 1] - x[1])
+            size = 2.0 * rad + 1.0
+            ok = (dist <= max(2.0 * p["still_tol"], 1.0)) & (size <= 2.0 * x[2] + 2.0) & ~used
+            if ok.any():
+                match = int(np.argmin(np.where(ok, dist, np.inf)))
+        if match >= 0:
+            used[match] = True
+            z = _box(cen[match, 0], cen[match, 1], rad[match])
+            x, P = kf_update(x, P, z, R, Hm)
+            tracks.append(Track(np.asarray(x, dtype=np.float64), P, 0, t.source))
+        elif t.misses + 1 < p["miss_frames"]:
+            tracks.append(Track(np.asarray(x, dtype=np.float64), P, t.misses + 1, t.source))
+    # Still candidates: components not explained by a track.
+    cands: list[Candidate] = []
+    promoted = 0
+    prev = cs.candidates
+    prev_anchor = np.array([c.anchor for c in prev]).reshape(-1, 2)
+    taken = np.zeros(len(prev), dtype=bool)
+    for i in np.flatnonzero(~used):
+        count, anchor = 1, (float(cen[i, 0]), float(cen[i, 1]))
+        if len(prev):
+            dist = np.hypot(prev_anchor[:, 0] - cen[i, 0], prev_anchor[:, 1] - cen[i, 1])
+            dist[taken] = np.inf
+            j = int(np.argmin(dist))
+            if dist[j] <= p["still_tol"]:
+                taken[j] = True
+                count, anchor = prev[j].count + 1, prev[j].anchor
+        if learn and count >= p["still_frames"] and len(tracks) < p["max_tracks"]:
+            tracks.append(_new_track(_box(cen[i, 0], cen[i, 1], rad[i]), p, "still"))
+            used[i] = True
+            promoted += 1
+        elif len(cands) < p["max_candidates"]:
+            cands.append(Candidate(anchor, count, float(rad[i])))
+    for j in np.flatnonzero(~taken):  # unseen this frame: keep through a short gap
+        c = prev[j]
+        if c.unseen < p["still_gap"] and len(cands) < p["max_candidates"]:
+            cands.append(Candidate(c.anchor, c.count, c.radius, c.unseen + 1))
+    # Mask every track's box unless a moving (unexplained) component overlaps it.
+    out_ir = ir.copy()
+    mask = np.zeros(ir.shape, dtype=np.uint8)
+    H, W = ir.shape
+    moving = np.flatnonzero(~used)
+    lifted = 0
+    m = p["box_margin"]
+    for t in tracks:
+        u, v, bw, bh = t.x
+        c0, c1 = int(np.floor(u - bw / 2 - m)), int(np.ceil(u + bw / 2 + m)) + 1
+        r0, r1 = int(np.floor(v - bh / 2 - m)), int(np.ceil(v + bh / 2 + m)) + 1
+        hit = False
+        for i in moving:
+            if (
+                cen[i, 0] + rad[i] >= c0
+                and cen[i, 0] - rad[i] <= c1
+                and cen[i, 1] + rad[i] >= r0
+                and cen[i, 1] - rad[i] <= r1
+            ):
+                hit = True
+                break
+        lift.append(hit)
+        if hit:
+            lifted += 1
+            continue
+        c0, c1, r0, r1 = max(c0, 0), min(c1, W), max(r0, 0), min(r1, H)
+        if c0 < c1 and r0 < r1:
+            out_ir[r0:r1, c0:c1] = 0
+            mask[r0:r1, c0:c1] = 1
+    new = replace(cs, candidates=tuple(cands), tracks=tuple(tracks))
+    return CleanResult(out_ir, d, mask, new, lifted, promoted)
+
+
+def _seed_floor(cs: CameraClean, cal: CalibrationRecord, p: Mapping[str, Any]) -> CameraClean:
+    """Add the calibration record's floor markers as interferer tracks (once per record)."""
+    px = np.asarray(cal.floor_pixels, dtype=np.float64).reshape(-1, 2)
+    tracks = [t for t in cs.tracks if t.source != "floor"]
+    for u, v in px:
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        near = [t for t in tracks if np.hypot(*(t.centre - (u, v))) < p["floor_marker_radius"]]
+        if not near and len(tracks) < p["max_tracks"]:
+            tracks.append(_new_track(_box(u, v, p["floor_marker_radius"]), p, "floor"))
+    return replace(cs, tracks=tuple(tracks), seeded=cal.header.capture_ns)
+
+
+def init(params: dict[str, Any]) -> CleanState:
+    return CleanState(dict(params))
+
+
+def step(state: CleanState, inputs: Inputs) -> tuple[CleanState, list]:
+    """Clean one raw frame; publish ``clean`` (nothing for calibration frames)."""
+    raw = inputs["raw"]
+    assert isinstance(raw, RawFrame)
+    cal = inputs.get("calibration")
+    cal = cal if isinstance(cal, CalibrationRecord) else None
+    p = state.params
+    h = raw.header
+    kind = trial_kind(h.trial)
+    ir, depth = np.asarray(raw.ir), np.asarray(raw.depth)
+    cs = state.cameras.get(h.camera, CameraClean())
+    if cs.trial != h.trial:
+        level = p["bright_threshold"]
+        if not level and cal is not None and np.isfinite(cal.w) and cal.w > 0:
+            level = float(cal.w)
+        if not level:
+            level = cs.level or initial_w(block_max(ir, 8))
+        # Candidates restart with the trial: frames of different trials are not contiguous.
+        cs = replace(cs, trial=h.trial, level=float(level), candidates=())
+    if cal is not None and p["mask_floor_markers"] and cs.seeded != cal.header.capture_ns:
+        cs = _seed_floor(cs, cal, p)
+    learn = kind != "static" or p["learn_static"]
+    res = clean_frame(ir, depth, cs, learn, p)
+    cams = dict(state.cameras)
+    cams[h.camera] = res.state
+    new = CleanState(p, cams, state.learned + res.promoted)
+    if kind == "calibration":
+        return new, []
+    doc = dict(cal.camera) if cal is not None and cal.camera else {}
+    out = CleanFrame.follow(
+        h,
+        ir=res.ir,
+        depth=res.depth,
+        mask=res.mask,
+        interferers=len(res.state.tracks) - res.lifted,
+        camera=doc,
+    )
+    return new, [out]
+
+
+SPEC = StageSpec(
+    name="clean",
+    params=PARAMS,
+    init=init,
+    step=step,
+    stateful=True,
+    doc=__doc__ or "",
+)

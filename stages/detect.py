@@ -1,0 +1,649 @@
+"""Stage ``detect``: the adaptive IR threshold (Alg. 1) and 2D marker detection (Alg. 2).
+
+Input: ``clean`` (cleaned IR, depth, mask) joined per frame, and the ``calibration`` record as
+a side input (its ``w`` and ``r_b`` seed Alg. 1). Output: ``blobs``.
+
+Array conventions: images are (row, col) = (v, u); a pixel's centre is at integer (u, v);
+centroids are (u, v) = (column, row) in pixels; radii in pixels; IR amplitude 0..65535 with
+65535 = saturated. N blobs along axis 0.
+
+Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and 3.2):
+
+- **Region of interest.** Every threshold Alg. 1 tries is at least ``min(w, e_j in H)``:
+  step 5 averages blob means (each above the current threshold) and step 6 averages blob
+  means and ``w``. All components of every threshold it tries therefore lie inside the
+  pixels above a floor level. :func:`compact_roi` finds the 8x8-pixel blocks holding such
+  pixels from a block-maximum image and gathers their block rows and columns into one small
+  image, with a zero separator line wherever rows or columns were skipped, so that no two
+  components merge. Connected components of the compact image are exactly those of the
+  frame, at any threshold above the floor; Alg. 1 iterates on it at a fraction of the
+  full-frame cost.
+- **Alg. 1** follows the Rec. reading: blob means for [A-1a] with normalised weights, stop
+  when f is unchanged or f = n [A-1b] with an iteration cap, ``w`` stays the anchor [A-1c],
+  8-connectivity, at least ``min_area`` pixels, strict ``S_d > e``. With an empty history
+  the h1/h2 term drops out (it has no data), as the h0 term does when f = 0.
+- **Alg. 2** uses the weight ``P - e_d`` [A-2a] and ``r_r = max l`` [A-2b].
+- **Sub-pixel refinement (departure, on by default, ``refine``).** Saturated markers are
+  flat-topped: once Alg. 1 has raised ``e_d`` close to 65535, every pixel above it has the
+  same weight and the centroid of Alg. 2 is the mean of the saturated pixel centres, which
+  is quantised. The sub-pixel information is in the partly covered edge pixels below
+  ``e_d``. For each blob we therefore recompute the centroid over the connected component
+  that contains it at a lower level ``e_low`` (between the local background and ``e_d``),
+  weighted by ``P - e_low``, when that component holds exactly this one blob (otherwise,
+  e.g. two markers touching at the lower level, the Alg. 2 centroid is kept). Only the
+  centroid changes; ``r_m``, ``r_r``, ``k`` and the blob set stay those of Alg. 2 at
+  ``e_d``. ``gaitflow bench mocap`` reports recall with and without it.
+- **Bad input** never raises: an all-zero frame gives no blobs (status ``empty``); blobs
+  wider than ``max_region_radius`` (a saturated frame, a lamp) are rejected and counted;
+  more than ``max_blobs`` candidates keep the ``max_blobs`` largest (status ``too-many``).
+  Work per frame is bounded by the iteration cap and by the frame size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from gaitflow.schemas import Blobs, CalibrationRecord, CleanFrame
+from gaitflow.stages.base import Inputs, StageSpec
+
+from gaitflow.params import Param, ParamSet
+
+SATURATED = 65535
+# Alg. 1 thresholds are compared with uint16 pixels by ``S > e``; 65534 still keeps
+# saturated pixels, so the threshold never rises past it.
+E_MAX = float(SATURATED - 1)
+
+PARAMS = ParamSet(
+    "detect",
+    (
+        Param(
+            "method",
+            str,
+            "adaptive",
+            "-",
+            "adaptive (Alg. 1) or static (fixed threshold, the Table II baseline)",
+            choices=("adaptive", "static"),
+        ),
+        Param("n", int, 12, "markers", "Alg. 1: number of markers expected (Table I)", low=1),
+        Param("b", int, 3, "frames", "Alg. 1: scan-window (history) length (Table I)", low=1),
+        Param("max_iterations", int, 10, "-", "Alg. 1: iteration cap [A-1b]", low=1, high=100),
+        Param("connectivity", int, 8, "-", "pixel connectivity of components", choices=(4, 8)),
+        Param("min_area", int, 3, "px", "smallest component counted as a blob", low=1),
+        Param(
+            "static_threshold",
+            float,
+            0.0,
+            "IR",
+            "threshold of method=static; 0 = the calibration w (or its image fallback)",
+            low=0.0,
+            high=E_MAX,
+        ),
+        Param(
+            "default_w",
+            float,
+            0.0,
+            "IR",
+            "w when no calibration record carries one; 0 = derive from the trial's first "
+            "frame: midway between the background level and the frame maximum",
+            low=0.0,
+            high=E_MAX,
+        ),
+        Param(
+            "default_r_b",
+            float,
+            0.0,
+            "px",
+            "r_b when no calibration record carries one; 0 = the median r_r of the blobs "
+            "at w in the trial's first frame with blobs (2 px if none)",
+            low=0.0,
+        ),
+        Param("refine", bool, True, "-", "sub-pixel centroid refinement below e_d (departure)"),
+        Param(
+            "refine_fraction",
+            float,
+            0.2,
+            "-",
+            "e_low = background + refine_fraction * (e_floor - background)",
+            low=0.0,
+            high=1.0,
+        ),
+        Param("max_blobs", int, 64, "blobs", "keep at most this many (largest) blobs", low=1),
+        Param(
+            "max_region_radius",
+            float,
+            40.0,
+            "px",
+            "reject components wider than this (not a marker: saturated area, lamp)",
+            low=1.0,
+        ),
+        Param("block", int, 8, "px", "block size of the region-of-interest search", low=2),
+    ),
+)
+
+
+# --------------------------------------------------------------------------------------
+# Region of interest
+
+
+@dataclass(frozen=True)
+class Roi:
+    """A small mosaic image gathering the parts of a frame above a level.
+
+    ``image`` (h, w) uint16 holds the gathered pixels, 0 elsewhere; ``tile`` (h, w) int32
+    says which crop each mosaic pixel came from (-1 = none), and crop t's pixel at mosaic
+    (r, c) is frame pixel (row, col) = (r + dv[t], c + du[t]).
+    """
+
+    image: np.ndarray
+    tile: np.ndarray
+    du: np.ndarray
+    dv: np.ndarray
+    level: float
+
+    def frame_uv(self, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frame (u, v) of mosaic pixels (r, c)."""
+        t = self.tile[r, c]
+        return c + self.du[t], r + self.dv[t]
+
+
+def block_max(ir: np.ndarray, block: int) -> np.ndarray:
+    """Maximum over each ``block`` x ``block`` tile. (H, W) -> (ceil(H/b), ceil(W/b))."""
+    h, w = ir.shape
+    hb, wb = -(-h // block), -(-w // block)
+    if hb * block != h or wb * block != w:
+        ir = np.pad(ir, ((0, hb * block - h), (0, wb * block - w)))
+    rm = np.maximum.reduce(ir.reshape(hb, block, wb * block), axis=1)
+    # Strided maxima over the block columns: much cheaper than a reduce over a short axis.
+    bm = rm[:, 0::block].copy()
+    for k in range(1, block):
+        np.maximum(bm, rm[:, k::block], out=bm)
+    return bm
+
+
+def _empty_roi(dtype: np.dtype, level: float) -> Roi:
+    z = np.zeros(0, dtype=np.intp)
+    return Roi(np.zeros((0, 0), dtype), np.zeros((0, 0), np.int32), z, z, float(level))
+
+
+def compact_roi(
+    ir: np.ndarray,
+    level: float,
+    block: int = 8,
+    bmax: np.ndarray | None = None,
+    mosaic_width: int = 128,
+) -> Roi:
+    """Gather the groups of ``block`` x ``block`` tiles holding pixels above ``level``.
+
+    Tiles whose maximum exceeds ``level`` are grouped by 8-connectivity; each group's
+    bounding box is cropped (pixels of other groups inside it are zeroed) and the crops are
+    shelf-packed into one mosaic with one zero line between neighbours.
+
+    Parameters
+    ----------
+    ir : (H, W) uint16 IR frame.
+    level : only pixels ``> level`` matter to the caller.
+    block : tile size in px.
+    bmax : the frame's :func:`block_max`, if already computed.
+    mosaic_width : shelf width of the mosaic in px (wider crops get their own shelf).
+
+    Returns
+    -------
+    Roi
+        Components of ``image > e`` for any ``e >= level`` are exactly the components of
+        ``ir > e``: every such component lies inside one tile group, and groups are
+        separated by zeros in the mosaic.
+    """
+    bm = block_max(ir, block) if bmax is None else bmax
+    act = (bm > level).view(np.uint8)
+    H, W = ir.shape
+    if not act.any():
+        return _empty_roi(ir.dtype, level)
+    ng, glab, stats, _ = cv2.connectedComponentsWithStats(act, connectivity=8)
+    boxes = stats[1:].tolist()  # [x, y, w, h, area] in blocks, one per group
+    # Shelf packing, tallest first so shelves waste little height.
+    order = sorted(range(ng - 1), key=lambda g: -boxes[g][3])
+    place: list[tuple[int, int, int, int]] = [(0, 0, 0, 0)] * (ng - 1)  # my, mx, ch, cw
+    x = y = shelf_h = width = 0
+    for g in order:
+        bx, by, bw, bh, _ = boxes[g]
+        ch = min((by + bh) * block, H) - by * block
+        cw = min((bx + bw) * block, W) - bx * block
+        if x > 0 and x + cw > mosaic_width:
+            y += shelf_h + 1
+            x = shelf_h = 0
+        place[g] = (y, x, ch, cw)
+        x += cw + 1
+        shelf_h = max(shelf_h, ch)
+        width = max(width, x - 1)
+    height = y + shelf_h
+    img = np.zeros((height, width), dtype=ir.dtype)
+    tile = np.full((height, width), -1, dtype=np.int32)
+    du = np.zeros(ng - 1, dtype=np.intp)
+    dv = np.zeros(ng - 1, dtype=np.intp)
+    for g in range(ng - 1):
+        bx, by, bw, bh, area = boxes[g]
+        r0, c0 = by * block, bx * block
+        my, mx, ch, cw = place[g]
+        crop = ir[r0 : r0 + ch, c0 : c0 + cw]
+        if area != bw * bh:  # another group's tiles lie inside this box: keep our own
+            blk = glab[by : by + bh, bx : bx + bw] == g + 1
+            own = np.repeat(np.repeat(blk, block, axis=0), block, axis=1)[:ch, :cw]
+            crop = np.where(own, crop, 0)
+        img[my : my + ch, mx : mx + cw] = crop
+        tile[my : my + ch, mx : mx + cw] = g
+        du[g], dv[g] = c0 - mx, r0 - my
+    return Roi(img, tile, du, dv, float(level))
+
+
+# --------------------------------------------------------------------------------------
+# Alg. 2: components and their statistics
+
+
+@dataclass(frozen=True)
+class Components:
+    """Alg. 2 statistics of the connected components above one threshold.
+
+    K components along axis 0, frame coordinates. ``labels`` (h, w) int32 labels the ROI
+    image (0 = background, component i has label ``ids[i]``).
+    """
+
+    threshold: float
+    centroid: np.ndarray  # (K, 2) (u, v) px, weights P - e
+    marker_radius: np.ndarray  # (K,) r_m: weighted mean distance to the centroid, px
+    region_radius: np.ndarray  # (K,) r_r: max distance to the centroid, px
+    mean_ir: np.ndarray  # (K,) k: mean IR
+    area: np.ndarray  # (K,) pixel count
+    ids: np.ndarray  # (K,) label of each component in ``labels``
+    labels: np.ndarray = field(repr=False)
+    rejected: int = 0  # components dropped as too wide (max_region_radius)
+
+    @property
+    def count(self) -> int:
+        return int(self.area.size)
+
+
+def components(
+    roi: Roi,
+    e: float,
+    min_area: int = 3,
+    connectivity: int = 8,
+    max_region_radius: float = np.inf,
+) -> Components:
+    """Alg. 2: connected components of ``roi.image > e`` with weighted centroid and radii.
+
+    Parameters
+    ----------
+    roi : compact image of the frame, ``roi.level <= e``.
+    e : threshold e_d; strict ``P > e``.
+    min_area : components with fewer pixels are not blobs.
+    connectivity : 4 or 8.
+    max_region_radius : components with ``r_r`` above it are rejected (counted).
+
+    Returns
+    -------
+    Components
+        Weight ``omega = (P - e) / v`` (Rec. [A-2a]); centroid ``sum omega * (u, v)``;
+        ``r_m = sum omega * l`` (Alg. 2 step 7); ``r_r = max l`` ([A-2b]).
+    """
+    img = roi.image
+    if img.size == 0:
+        z = np.zeros(0)
+        return Components(
+            float(e), np.zeros((0, 2)), z, z, z, np.zeros(0, np.int32), np.zeros(0, np.int32),
+            np.zeros((0, 0), np.int32),
+        )  # fmt: skip
+    mask = (img > e).view(np.uint8)
+    nlab, labels = cv2.connectedComponents(mask, connectivity=connectivity, ltype=cv2.CV_32S)
+    r, c = np.nonzero(mask)
+    lab = labels[r, c]
+    val = img[r, c].astype(np.float64)
+    wt = val - e
+    area = np.bincount(lab, minlength=nlab)
+    sw = np.bincount(lab, wt, minlength=nlab)
+    sw[0] = 1.0
+    fu, fv = roi.frame_uv(r, c)
+    u = fu.astype(np.float64)
+    v = fv.astype(np.float64)
+    pu = np.bincount(lab, wt * u, minlength=nlab) / sw
+    pv = np.bincount(lab, wt * v, minlength=nlab) / sw
+    dist = np.hypot(u - pu[lab], v - pv[lab])
+    rm = np.bincount(lab, wt * dist, minlength=nlab) / sw
+    rr = np.zeros(nlab)
+    np.maximum.at(rr, lab, dist)
+    k = np.bincount(lab, val, minlength=nlab) / np.maximum(area, 1)
+    ok = area >= min_area
+    ok[0] = False
+    wide = ok & (rr > max_region_radius)
+    ok &= ~wide
+    ids = np.flatnonzero(ok).astype(np.int32)
+    return Components(
+        threshold=float(e),
+        centroid=np.stack([pu[ids], pv[ids]], axis=1),
+        marker_radius=rm[ids],
+        region_radius=rr[ids],
+        mean_ir=k[ids],
+        area=area[ids].astype(np.int32),
+        ids=ids,
+        labels=labels,
+        rejected=int(wide.sum()),
+    )
+
+
+def refine_centroids(
+    roi: Roi, comps: Components, e_low: float, connectivity: int = 8
+) -> np.ndarray:
+    """Sub-pixel centroids from the partly covered edge pixels (departure, see module doc).
+
+    Parameters
+    ----------
+    roi : compact image, ``roi.level <= e_low``.
+    comps : the blobs at e_d (``e_low < e_d``).
+    e_low : the lower level; weights ``P - e_low``.
+
+    Returns
+    -------
+    (K, 2) centroids (u, v): the component at ``e_low`` holding each blob, weighted by
+    ``P - e_low``, when it holds exactly that one blob; the Alg. 2 centroid otherwise.
+    """
+    out = comps.centroid.copy()
+    if comps.count == 0 or e_low >= comps.threshold:
+        return out
+    low = components(roi, e_low, 1, connectivity)
+    # Component at e_low of each blob at e_d: nested, so any pixel of the blob will do.
+    first = np.zeros(comps.labels.max() + 1, dtype=np.intp)
+    r, c = np.nonzero(comps.labels)
+    first[comps.labels[r, c]] = r * comps.labels.shape[1] + c
+    low_of = low.labels.ravel()[first[comps.ids]]
+    # Blobs below min_area still split a low component between two markers, so count every
+    # high component, not just the kept ones.
+    high_labels = np.unique(comps.labels[comps.labels > 0])
+    first_all = first[high_labels]
+    per_low = np.bincount(low.labels.ravel()[first_all], minlength=low.labels.max() + 1)
+    pos = np.full(low.labels.max() + 1, -1, dtype=np.intp)
+    pos[low.ids] = np.arange(low.count)
+    for i, lid in enumerate(low_of):
+        if per_low[lid] == 1 and pos[lid] >= 0:
+            out[i] = low.centroid[pos[lid]]
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Alg. 1: adaptive threshold
+
+
+@dataclass(frozen=True)
+class HistoryEntry:
+    """One scan-window entry: the frame's threshold e_j, and mean IR k1_j and region
+    radius u1_j of its largest blob (NaN when it had none)."""
+
+    e: float
+    k1: float
+    u1: float
+
+
+def _largest(comps: Components) -> tuple[float, float]:
+    if comps.count == 0:
+        return float("nan"), float("nan")
+    i = int(np.argmax(comps.marker_radius))
+    return float(comps.mean_ir[i]), float(comps.region_radius[i])
+
+
+def _wmean(x: np.ndarray, w: np.ndarray) -> float:
+    ok = np.isfinite(x) & np.isfinite(w) & (w > 0)
+    if not ok.any():
+        return float("nan")
+    return float(np.sum(x[ok] * w[ok]) / np.sum(w[ok]))
+
+
+def adaptive_threshold(
+    roi: Roi,
+    w: float,
+    r_b: float,
+    n: int,
+    history: tuple[HistoryEntry, ...],
+    max_iterations: int = 10,
+    min_area: int = 3,
+    connectivity: int = 8,
+    max_region_radius: float = np.inf,
+) -> tuple[Components, int]:
+    """Alg. 1: the frame's threshold e_d, iterated until the blob count settles.
+
+    Parameters
+    ----------
+    roi : compact image of S_d with ``roi.level <= min(w, e_j)``.
+    w, r_b : calibration anchor threshold and blob base radius (px).
+    n : expected number of markers.
+    history : the last b entries H, oldest first.
+    max_iterations : cap on the loop of steps 3-10.
+
+    Returns
+    -------
+    (components at e_d, iterations): ``components.threshold`` is e_d.
+    """
+    cache: dict[float, Components] = {}
+
+    def at(e: float) -> Components:
+        e = float(min(max(e, roi.level), E_MAX))
+        if e not in cache:
+            cache[e] = components(roi, e, min_area, connectivity, max_region_radius)
+        return cache[e]
+
+    # Step 1: the history threshold whose blob count is closest to n (ties: most recent).
+    if history:
+        best = None
+        for h in reversed(history):
+            c = at(h.e)
+            if best is None or abs(n - c.count) < abs(n - best.count):
+                best = c
+        cur = best
+    else:
+        cur = at(w)
+    assert cur is not None
+    e_hist = np.array([h.e for h in history])
+    hk = np.array([h.k1 for h in history])
+    hu = np.array([h.u1 for h in history])
+    h1 = _wmean(hk, e_hist / w) if history else float("nan")
+    h2 = _wmean(hu, e_hist / w) if history else float("nan")
+    it = 0
+    while it < max_iterations:
+        f = cur.count
+        if f == n:
+            break
+        it += 1
+        order = np.argsort(-cur.marker_radius, kind="stable")
+        if f > n:  # Step 5: raise e_d to the radius-weighted mean IR of the n largest
+            top = order[:n]
+            lq = cur.marker_radius[top]
+            kq = cur.mean_ir[top]
+            e = float(np.sum(lq * kq) / np.sum(lq)) if np.sum(lq) > 0 else float(np.mean(kq))
+        else:  # Step 6: pull e_d towards the blob, history and calibration intensities
+            num, den = w, 1.0
+            if f > 0:
+                h0 = _wmean(cur.mean_ir, cur.marker_radius / r_b)
+                if np.isfinite(h0):
+                    num += h0 * f / n
+                    den += f / n
+            if np.isfinite(h1) and np.isfinite(h2):
+                num += h1 * h2 / r_b
+                den += h2 / r_b
+            e = num / den
+        nxt = at(e)
+        if nxt.threshold == cur.threshold:
+            break
+        f_new = nxt.count
+        cur = nxt
+        if f_new in (f, n):  # Step 9
+            break
+    return cur, it
+
+
+def initial_w(bmax: np.ndarray) -> float:
+    """Fallback anchor w from one frame: midway between background and frame maximum.
+
+    The background level is the median of the 8x8 block maxima, which ignores the few
+    blocks holding markers; the result is at least 1 so that ``S > w`` never keeps the
+    whole of an all-zero frame.
+    """
+    bg = float(np.median(bmax)) if bmax.size else 0.0
+    top = float(bmax.max()) if bmax.size else 0.0
+    return float(min(max(0.5 * (bg + top), 1.0), E_MAX))
+
+
+# --------------------------------------------------------------------------------------
+# Stage state and step
+
+
+@dataclass(frozen=True)
+class CameraState:
+    """Alg. 1 state of one camera within one trial."""
+
+    trial: str
+    w: float
+    r_b: float
+    history: tuple[HistoryEntry, ...] = ()
+
+
+@dataclass(frozen=True)
+class DetectState:
+    """Per-camera Alg. 1 state (``cameras`` is never mutated, only replaced)."""
+
+    params: Mapping[str, Any]
+    cameras: Mapping[str, CameraState] = field(default_factory=dict)
+    frames: int = 0
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Result of :func:`detect_frame` for one frame."""
+
+    blobs: Components
+    centroid: np.ndarray  # (K, 2) final (possibly refined) centroids
+    threshold: float
+    iterations: int
+    status: str
+    history_entry: HistoryEntry
+    candidates: int  # blobs before the max_blobs cut
+
+
+def detect_frame(
+    ir: np.ndarray,
+    w: float,
+    r_b: float,
+    history: tuple[HistoryEntry, ...],
+    params: Mapping[str, Any],
+) -> Detection:
+    """Alg. 1 + Alg. 2 on one IR frame (pure).
+
+    Parameters
+    ----------
+    ir : (H, W) uint16 cleaned IR frame S_d.
+    w, r_b : anchor threshold and blob base radius.
+    history : Alg. 1 scan window, oldest first.
+    params : resolved :data:`PARAMS`.
+    """
+    p = params
+    bm = block_max(ir, p["block"])
+    if p["method"] == "static":
+        e_static = p["static_threshold"] or w
+        floor = e_static
+    else:
+        floor = min([w, *(h.e for h in history)])
+    bg = float(np.median(bm)) if bm.size else 0.0
+    e_low = bg + p["refine_fraction"] * max(floor - bg, 0.0)
+    level = min(e_low, floor) if p["refine"] else floor
+    roi = compact_roi(ir, level, p["block"], bm)
+    if p["method"] == "static":
+        comps = components(roi, e_static, p["min_area"], p["connectivity"], p["max_region_radius"])
+        iterations = 0
+    else:
+        comps, iterations = adaptive_threshold(
+            roi,
+            w,
+            r_b,
+            p["n"],
+            history,
+            p["max_iterations"],
+            p["min_area"],
+            p["connectivity"],
+            p["max_region_radius"],
+        )
+    centroid = comps.centroid
+    if p["refine"] and comps.count:
+        centroid = refine_centroids(roi, comps, e_low, p["connectivity"])
+    k1, u1 = _largest(comps)
+    entry = HistoryEntry(comps.threshold, k1, u1)
+    status = "ok"
+    if roi.image.size == 0 or comps.count == 0:
+        status = "empty"
+    if comps.count > p["max_blobs"]:
+        status = "too-many"
+    return Detection(comps, centroid, comps.threshold, iterations, status, entry, comps.count)
+
+
+def _anchor(ir: np.ndarray, cal: CalibrationRecord | None, p: Mapping[str, Any]) -> tuple:
+    """(w, r_b) from the calibration record, the declared defaults, or the image."""
+    w = cal.w if cal is not None and np.isfinite(cal.w) and cal.w > 0 else p["default_w"]
+    if not w:
+        w = initial_w(block_max(ir, p["block"]))
+    r_b = cal.r_b if cal is not None and np.isfinite(cal.r_b) and cal.r_b > 0 else p["default_r_b"]
+    if not r_b:
+        roi = compact_roi(ir, w, p["block"])
+        c = components(roi, w, p["min_area"], p["connectivity"], p["max_region_radius"])
+        r_b = float(np.median(c.region_radius)) if c.count else 0.0
+    return float(min(w, E_MAX)), float(r_b)
+
+
+def init(params: dict[str, Any]) -> DetectState:
+    return DetectState(params=dict(params))
+
+
+def step(state: DetectState, inputs: Inputs) -> tuple[DetectState, list]:
+    """Detect blobs in one ``clean`` frame; publish ``blobs``."""
+    frame = inputs["clean"]
+    assert isinstance(frame, CleanFrame)
+    cal = inputs.get("calibration")
+    cal = cal if isinstance(cal, CalibrationRecord) else None
+    p = state.params
+    cam, trial = frame.header.camera, frame.header.trial
+    cs = state.cameras.get(cam)
+    ir = np.asarray(frame.ir)
+    if cs is None or cs.trial != trial:
+        w, r_b = _anchor(ir, cal, p)
+        cs = CameraState(trial, w, r_b)
+    elif cs.r_b <= 0:  # no blob seen yet to derive r_b from
+        cs = CameraState(trial, cs.w, _anchor(ir, cal, p)[1], cs.history)
+    det = detect_frame(ir, cs.w, cs.r_b if cs.r_b > 0 else 2.0, cs.history, p)
+    history = (*cs.history, det.history_entry)[-p["b"] :]
+    cams = dict(state.cameras)
+    cams[cam] = CameraState(trial, cs.w, cs.r_b, history)
+    c = det.blobs
+    keep = np.argsort(-c.area, kind="stable")[: p["max_blobs"]]
+    keep.sort()
+    out = Blobs.follow(
+        frame.header,
+        centroid=det.centroid[keep],
+        marker_radius=c.marker_radius[keep],
+        region_radius=c.region_radius[keep],
+        mean_ir=c.mean_ir[keep],
+        area=c.area[keep],
+        threshold=det.threshold,
+        iterations=det.iterations,
+        method=p["method"],
+        status=det.status,
+        rejected=c.rejected,
+    )
+    return DetectState(p, cams, state.frames + 1), [out]
+
+
+SPEC = StageSpec(
+    name="detect",
+    params=PARAMS,
+    init=init,
+    step=step,
+    stateful=True,
+    doc=__doc__ or "",
+)

@@ -1,0 +1,504 @@
+"""Stage ``locate``: 3D marker location from the depth ring around each marker (Alg. 3).
+
+Inputs: ``clean`` and ``blobs``, joined per frame. Output: ``markers`` (:class:`Markers3D`),
+the blobs in the same order with their depth and camera-space position under each of the
+three cluster modes (axis 1 in ``gaitflow.markers.CLUSTER_MODES`` order: normal, top,
+bottom). The mode depends on the marker's label, which the label stage assigns after this
+one; publishing all three keeps the graph acyclic and label picks the one it needs.
+
+Array conventions: depth images are (row, col), Z in mm, 0 = invalid; pixels (u, v) =
+(column, row); camera space X right, Y down, Z forward, mm; NaN = depth not recovered.
+
+Alg. 3 follows the Rec. reading R1-R9 of ``../shared/reference/algorithms.md`` section 3.3,
+with these departures, each for the stated reason:
+
+- **Bottom mode reach.** R4 takes the farthest slab. Beside a pelvis or thigh marker seen
+  side-on, the window also holds the background (wall, floor) metres behind the body, and
+  the farthest slab is then the background, not the body behind the swinging arm. Bottom
+  mode therefore takes the farthest significant slab that starts within ``bottom_reach``
+  (150 mm: an arm's thickness plus its gap to the trunk) behind the nearest one.
+- **Top mode** uses only the window rows at and above the centroid (the [A-3b] refinement:
+  the half away from the occluded side). For heel, toe and shoulder markers the lower half
+  holds the floor (nearer than the foot in a side view from 0.8 m) or the arm; if that
+  half has fewer than 3 valid pixels the whole window is used.
+- **Marker centre.** The ring is the surface the marker sits on; the sphere's centre is one
+  radius in front of it, towards the camera (the markers face the camera in a side view).
+  The point is moved back along its viewing ray by ``marker_diameter_mm / 2`` so that the
+  published position is the marker centre, which is what the subject model and the gait
+  kinematics assume. ``surface_offset`` = false keeps the paper's surface point.
+- **D2 in px** ([A-3e]): the distance to (p, q) is measured in the image.
+- **Too few pixels** (R1): the margin is widened once by D0; if still fewer than 3 valid
+  pixels the depth is NaN (a gap that post-processing fills).
+
+The camera intrinsics come from, in order: the ``camera`` parameter (a camera.json
+document, for an explicit override), the ``camera`` field of the clean frame (copied by the
+clean stage from the calibration record, i.e. the session's camera.json), or the default
+``gaitflow.camera.Camera()``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from gaitflow.schemas import Blobs, CleanFrame, Markers3D
+from gaitflow.stages.base import Inputs, StageSpec
+
+from gaitflow.camera import Camera
+from gaitflow.errors import InputError, StageError
+from gaitflow.markers import CLUSTER_MODES
+from gaitflow.params import Param, ParamSet
+
+MODE_INDEX = {m: i for i, m in enumerate(CLUSTER_MODES)}
+
+PARAMS = ParamSet(
+    "locate",
+    (
+        Param("W", float, 50.0, "mm", "Alg. 3: Max-Min width of a depth layer (Table I)", low=1.0),
+        Param("D0", float, 2.0, "px", "Alg. 3: window margin and pixel count (Table I)", low=0.0),
+        Param("D1", float, 5.0, "mm", "Alg. 3: depth histogram bin (Table I)", low=0.1),
+        Param("D2", float, 0.5, "px", "Alg. 3: distance histogram bin ([A-3e])", low=0.01),
+        Param("min_slab", int, 3, "px", "R3: slabs with fewer pixels are flying pixels", low=1),
+        Param(
+            "bottom_reach",
+            float,
+            150.0,
+            "mm",
+            "bottom mode: farthest slab starting within this of the nearest (departure)",
+            low=0.0,
+        ),
+        Param(
+            "top_half",
+            bool,
+            False,
+            "-",
+            "top mode uses only the window rows at and above the centroid ([A-3b])",
+        ),
+        Param("max_depth", float, 8000.0, "mm", "depths above this are invalid", low=1.0),
+        Param(
+            "surface_offset",
+            bool,
+            True,
+            "-",
+            "move the ring surface point back to the marker centre (departure)",
+        ),
+        Param(
+            "marker_diameter_mm",
+            float,
+            25.0,
+            "mm",
+            "marker sphere diameter (surface-to-centre offset is half of it)",
+            low=0.0,
+            high=100.0,
+        ),
+        Param("camera", dict, {}, "-", "camera.json override of the intrinsics; {} = none"),
+    ),
+)
+
+
+def _slabs(v: np.ndarray, W: float) -> list[tuple[int, int]]:
+    """R2: split sorted depths into W-wide slabs, near to far. Returns (start, stop) index
+    pairs into ``v``; each slab is [s, s + W) from the smallest unassigned value s."""
+    out: list[tuple[int, int]] = []
+    i, n = 0, v.size
+    while i < n:
+        j = int(np.searchsorted(v, v[i] + W, side="left"))
+        j = max(j, i + 1)
+        out.append((i, j))
+        i = j
+    return out
+
+
+def _layer_depth(
+    depth: np.ndarray,
+    dist: np.ndarray,
+    T0: float,
+    T1: float,
+    r: float,
+    d: float,
+    nv: int,
+    p: Mapping,
+) -> float:
+    """R5-R8 on the pixels of one window: population-weighted modal-ring depth in [T0, T1]."""
+    D0, D1, D2 = p["D0"], p["D1"], p["D2"]
+    sel = (depth >= T0) & (depth <= T1)
+    z, dd = depth[sel], dist[sel]
+    if z.size == 0:
+        return float("nan")
+    nb = max(math.ceil((T1 - T0) / D1), 1)
+    zb = np.minimum(((z - T0) / D1).astype(np.intp), nb - 1)
+    counts = np.bincount(zb, minlength=nb)
+    B = int(np.count_nonzero(counts))
+    # R6 [A-3c]: |H0| is the number of non-empty bins here; the bound is in effect "fewer
+    # than D0 pixels" but is kept in the paper's form.
+    bound = min((r + D0) ** 2, d * d / B + D0, D0, nv / B)
+    keep = counts >= bound
+    keep &= counts > 0
+    if not keep.any():
+        return float("nan")
+    # R7: distance histogram per depth bin; mu(h) = mean depth of its modal distance bin.
+    ndist = int(dd.max() / D2) + 1
+    db = (dd / D2).astype(np.intp)
+    key = zb * ndist + db
+    cnt2 = np.bincount(key, minlength=nb * ndist).reshape(nb, ndist)
+    sum2 = np.bincount(key, z, minlength=nb * ndist).reshape(nb, ndist)
+    mode = np.argmax(cnt2, axis=1)
+    rows = np.flatnonzero(keep)
+    mu = sum2[rows, mode[rows]] / cnt2[rows, mode[rows]]
+    # R8: population-weighted mean over the kept bins ([A-3c]: |H0| = pixel total).
+    wts = counts[rows].astype(np.float64)
+    return float(np.sum(mu * wts) / np.sum(wts))
+
+
+def locate_depth(
+    depth: np.ndarray,
+    centroid: tuple[float, float],
+    region_radius: float,
+    params: Mapping[str, Any],
+) -> tuple[float, float, float]:
+    """Alg. 3 (Rec. R1-R8): the marker's surface depth under the three cluster modes.
+
+    Parameters
+    ----------
+    depth : (H, W) uint16 depth image D_d, mm, 0 = invalid.
+    centroid : (p, q) = (u, v) px, from Alg. 2.
+    region_radius : r_r px, from Alg. 2.
+    params : resolved :data:`PARAMS`.
+
+    Returns
+    -------
+    (z_normal, z_top, z_bottom) in mm; NaN where no layer is found.
+    """
+    p = params
+    H, Wd = depth.shape
+    pu, pq = float(centroid[0]), float(centroid[1])
+    if not (np.isfinite(pu) and np.isfinite(pq) and np.isfinite(region_radius)):
+        return (math.nan,) * 3
+    r = float(region_radius)
+    margin = p["D0"]
+    for _attempt in range(2):  # R1: widen once by D0 if too few valid pixels
+        half = math.ceil(r + margin)
+        cu, cq = round(pu), round(pq)
+        c0, c1 = max(cu - half, 0), min(cu + half + 1, Wd)
+        r0, r1 = max(cq - half, 0), min(cq + half + 1, H)
+        if c0 >= c1 or r0 >= r1:  # window outside the image: widen like an empty one
+            margin += p["D0"]
+            continue
+        win = depth[r0:r1, c0:c1]
+        ok = (win > 0) & (win <= p["max_depth"])
+        if np.count_nonzero(ok) >= 3:
+            break
+        margin += p["D0"]
+    else:
+        return (math.nan,) * 3
+    rr, cc = np.nonzero(ok)
+    z = win[rr, cc].astype(np.float64)
+    dist = np.hypot(cc + c0 - pu, rr + r0 - pq)
+    upper = rr + r0 <= pq
+    d = 2.0 * (r + p["D0"]) + 1.0
+    out = []
+    for mode in CLUSTER_MODES:
+        zz, dd = z, dist
+        if mode == "top" and p["top_half"] and np.count_nonzero(upper) >= 3:
+            zz, dd = z[upper], dist[upper]
+        order = np.argsort(zz, kind="stable")
+        zs = zz[order]
+        slabs = [s for s in _slabs(zs, p["W"]) if s[1] - s[0] >= p["min_slab"]]  # R2-R3
+        if not slabs:
+            out.append(math.nan)
+            continue
+        if mode == "bottom":
+            near = zs[slabs[0][0]]
+            reach = [s for s in slabs if zs[s[0]] <= near + p["bottom_reach"]]
+            T1 = float(zs[reach[-1][1] - 1])
+            T0 = T1 - p["W"]
+        else:
+            T0 = float(zs[slabs[0][0]])
+            T1 = T0 + p["W"]
+        out.append(_layer_depth(zz, dd, T0, T1, r, d, zz.size, p))
+    return out[0], out[1], out[2]
+
+
+def _layer_bounds(
+    zs: np.ndarray, n: np.ndarray, W: float, min_slab: int, reach: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """R2-R4 for many rows at once, on sorted, inf-padded rows ``zs`` (N, M) holding ``n``
+    valid values each.
+
+    Walks the greedy W-slabs of every row together (one ``searchsorted`` per pass over the
+    flattened rows, which stay sorted once each row is offset by a large constant).
+
+    Returns
+    -------
+    (near, far): the start of the first slab of >= ``min_slab`` px (T0 of the normal and top
+    modes), and the last value of the farthest such slab starting within ``reach`` of it
+    (T1 of the bottom mode); NaN where a row has no significant slab.
+    """
+    N, M = zs.shape
+    rows = np.arange(N)
+    finite = np.where(np.isfinite(zs), zs, 0.0)
+    big = float(finite.max(initial=0.0)) + 2.0 * W + 1.0
+    flat = (np.where(np.isfinite(zs), zs, big - W * 0.5) + rows[:, None] * 2.0 * big).ravel()
+    base = rows * M
+    i = np.zeros(N, dtype=np.intp)
+    near = np.full(N, np.nan)
+    far = np.full(N, np.nan)
+    active = n > 0
+    for _ in range(M + 1):  # every pass consumes at least one value of each active row
+        if not active.any():
+            break
+        s = zs[rows, np.minimum(i, M - 1)]
+        j = np.searchsorted(flat, s + W + rows * 2.0 * big, side="left") - base
+        j = np.minimum(np.maximum(j, i + 1), n)
+        sig = active & (j - i >= min_slab)
+        first = sig & np.isnan(near)
+        near = np.where(first, s, near)
+        within = sig & (s <= near + reach)
+        far = np.where(within, zs[rows, np.maximum(j - 1, 0)], far)
+        i = np.where(active, j, i)
+        active &= (i < n) & ~(np.isfinite(near) & (zs[rows, np.minimum(i, M - 1)] > near + reach))
+    return near, far
+
+
+def _layers_batch(
+    z: np.ndarray, dist: np.ndarray, T0: np.ndarray, r: np.ndarray, nv: np.ndarray, p: Mapping
+) -> np.ndarray:
+    """R5-R8 for J jobs at once. z, dist (J, M) with NaN/inf where not a pixel; T0 (J,)
+    (NaN = no layer), r (J,) region radii, nv (J,) valid pixel counts. Returns (J,) mm."""
+    D0, D1, D2, W = p["D0"], p["D1"], p["D2"], p["W"]
+    J = z.shape[0]
+    out = np.full(J, np.nan)
+    ok = np.isfinite(T0)
+    if not ok.any():
+        return out
+    T0f = np.where(ok, T0, 0.0)
+    sel = ok[:, None] & (z >= T0f[:, None]) & (z <= (T0f + W)[:, None])
+    jj, mm = np.nonzero(sel)
+    if jj.size == 0:
+        return out
+    zz = z[jj, mm]
+    dd = dist[jj, mm]
+    nb = max(math.ceil(W / D1), 1)
+    zb = np.minimum(((zz - T0f[jj]) / D1).astype(np.intp), nb - 1)
+    counts = np.bincount(jj * nb + zb, minlength=J * nb).reshape(J, nb)
+    B = np.maximum(np.count_nonzero(counts, axis=1), 1)
+    d = 2.0 * (r + D0) + 1.0
+    bound = np.minimum.reduce([(r + D0) ** 2, d * d / B + D0, np.full(J, D0), nv / B])
+    keep = (counts >= bound[:, None]) & (counts > 0)
+    ndist = int(dd.max() / D2) + 1
+    db = (dd / D2).astype(np.intp)
+    key = (jj * nb + zb) * ndist + db
+    cnt2 = np.bincount(key, minlength=J * nb * ndist).reshape(J * nb, ndist)
+    sum2 = np.bincount(key, zz, minlength=J * nb * ndist).reshape(J * nb, ndist)
+    mode = np.argmax(cnt2, axis=1)
+    flat = np.arange(J * nb)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mu = (sum2[flat, mode] / cnt2[flat, mode]).reshape(J, nb)
+    wts = np.where(keep, counts, 0).astype(np.float64)
+    tot = wts.sum(axis=1)
+    num = np.where(keep, mu, 0.0) * wts
+    good = tot > 0
+    out[good] = num.sum(axis=1)[good] / tot[good]
+    return out
+
+
+def locate_depths(
+    depth: np.ndarray,
+    centroid: np.ndarray,
+    region_radius: np.ndarray,
+    params: Mapping[str, Any],
+) -> np.ndarray:
+    """Alg. 3 (Rec. R1-R8) for every blob at once: surface depth under the three modes.
+
+    Vectorised over blobs (windows padded to the largest), with the same result as calling
+    :func:`locate_depth` per blob.
+
+    Parameters
+    ----------
+    depth : (H, W) uint16 depth, mm, 0 = invalid.
+    centroid : (N, 2) (u, v) px.
+    region_radius : (N,) r_r px.
+
+    Returns
+    -------
+    (N, 3) Z mm under normal, top and bottom; NaN where no layer is found.
+    """
+    p = params
+    N = centroid.shape[0]
+    out = np.full((N, 3), np.nan)
+    ok = np.isfinite(centroid).all(axis=1) & np.isfinite(region_radius)
+    if not ok.any():
+        return out
+    # Windows are padded to the largest of a batch, so blobs go in batches of similar size:
+    # one wide blob (a lamp, a merged pair) must not make every window wide.
+    half = np.ceil(region_radius + p["D0"])
+    size_class = np.where(ok, np.ceil(np.log2(np.maximum(np.nan_to_num(half), 1.0))), -1)
+    for cls in np.unique(size_class[ok]):
+        idx = np.flatnonzero(ok & (size_class == cls))
+        margin = np.full(idx.size, p["D0"])
+        z, res = _batch(depth, centroid[idx], region_radius[idx], margin, p)
+        few = res < 3  # R1: widen the margin once by D0
+        if few.any():
+            z2, _ = _batch(depth, centroid[idx[few]], region_radius[idx[few]], margin[few] * 2, p)
+            z[few] = z2
+        out[idx] = z
+    return out
+
+
+def _batch(
+    depth: np.ndarray, cen: np.ndarray, r: np.ndarray, margin: np.ndarray, p: Mapping
+) -> tuple[np.ndarray, np.ndarray]:
+    """Alg. 3 on windows of half-size ceil(r + margin); returns ((n, 3) z, (n,) valid px)."""
+    H, Wd = depth.shape
+    n = cen.shape[0]
+    half = np.ceil(r + margin).astype(np.intp)
+    hm = int(half.max())
+    off = np.arange(-hm, hm + 1)
+    cu = np.rint(cen[:, 0]).astype(np.intp)
+    cq = np.rint(cen[:, 1]).astype(np.intp)
+    # (n, S, S) window pixel coordinates, masked to each blob's own half-size.
+    S = 2 * hm + 1
+    cols = np.broadcast_to(cu[:, None, None] + off[None, None, :], (n, S, S))
+    rows = np.broadcast_to(cq[:, None, None] + off[None, :, None], (n, S, S))
+    inside = (np.abs(off)[None, None, :] <= half[:, None, None]) & (
+        np.abs(off)[None, :, None] <= half[:, None, None]
+    )
+    inside &= (cols >= 0) & (cols < Wd) & (rows >= 0) & (rows < H)
+    vals = depth[np.clip(rows, 0, H - 1), np.clip(cols, 0, Wd - 1)].astype(np.float64)
+    valid = inside & (vals > 0) & (vals <= p["max_depth"])
+    S2 = S * S
+    valid = valid.reshape(n, S2)
+    zf = np.where(valid, vals.reshape(n, S2), np.inf)
+    dist = np.hypot(cols - cen[:, 0, None, None], rows - cen[:, 1, None, None]).reshape(n, S2)
+    upper = (rows <= cen[:, 1, None, None]).reshape(n, S2) & valid
+    nvalid = valid.sum(axis=1)
+    use_upper = (upper.sum(axis=1) >= 3) & bool(p["top_half"])
+    zt = np.where(use_upper[:, None] & ~upper, np.inf, zf)
+    # Both pixel sets sorted per row; dist follows the depth order.
+    oa = np.argsort(zf, axis=1, kind="stable")
+    za, da = np.take_along_axis(zf, oa, 1), np.take_along_axis(dist, oa, 1)
+    if p["top_half"]:
+        ot = np.argsort(zt, axis=1, kind="stable")
+        zt, dt = np.take_along_axis(zt, ot, 1), np.take_along_axis(dist, ot, 1)
+    else:
+        zt, dt = za, da
+    na = nvalid
+    nt = np.where(use_upper, upper.sum(axis=1), nvalid)
+    W, ms, reach = p["W"], p["min_slab"], p["bottom_reach"]
+    t0_normal, t1_bottom = _layer_bounds(za, na, W, ms, reach)
+    if p["top_half"]:
+        t0_top, _ = _layer_bounds(zt, nt, W, ms, reach)
+    else:
+        t0_top = t0_normal
+    t0_bottom = t1_bottom - W
+    # Jobs: normal always; top and bottom only where they differ from it.
+    need_top = use_upper  # its own pixel set, whatever its T0
+    need_bot = ~(t0_bottom == t0_normal) & np.isfinite(t0_bottom)
+    it, ib = np.flatnonzero(need_top), np.flatnonzero(need_bot)
+    zj = np.concatenate([za, zt[it], za[ib]])
+    dj = np.concatenate([da, dt[it], da[ib]])
+    T0 = np.concatenate([t0_normal, t0_top[it], t0_bottom[ib]])
+    rj = np.concatenate([r, r[it], r[ib]])
+    nvj = np.concatenate([na, nt[it], na[ib]]).astype(np.float64)
+    zs = _layers_batch(zj, dj, T0, rj, nvj, p)
+    out = np.repeat(zs[:n, None], 3, axis=1)
+    out[it, 1] = zs[n : n + it.size]
+    out[ib, 2] = zs[n + it.size :]
+    return out, nvalid
+
+
+def locate_all(
+    depth: np.ndarray,
+    centroid: np.ndarray,
+    region_radius: np.ndarray,
+    camera: Camera,
+    params: Mapping[str, Any],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Alg. 3 for every blob, then R9: camera-space positions.
+
+    Parameters
+    ----------
+    depth : (H, W) uint16 depth, mm.
+    centroid : (N, 2) (u, v) px.
+    region_radius : (N,) r_r px.
+    camera : intrinsics and distortion of the depth sensor.
+
+    Returns
+    -------
+    depth (N, 3) Z mm of the marker point and position (N, 3, 3) [blob, mode, xyz] mm.
+    """
+    n = centroid.shape[0]
+    zs = locate_depths(depth, centroid, region_radius, params)
+    pos = np.full((n, 3, 3), np.nan)
+    if n:
+        xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
+        for m in range(3):
+            pos[:, m, 0] = xy[:, 0] * zs[:, m]
+            pos[:, m, 1] = xy[:, 1] * zs[:, m]
+            pos[:, m, 2] = zs[:, m]
+        if params["surface_offset"] and params["marker_diameter_mm"] > 0:
+            off = 0.5 * params["marker_diameter_mm"]
+            norm = np.linalg.norm(pos, axis=2, keepdims=True)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                pos = pos * np.clip(1.0 - off / norm, 0.0, None)
+    return pos[:, :, 2].copy(), pos
+
+
+@dataclass(frozen=True)
+class LocateState:
+    """The resolved parameters and the intrinsics in use (parsed once, not per frame)."""
+
+    params: Mapping[str, Any]
+    camera_doc: Mapping[str, Any]
+    camera: Camera
+
+
+def _camera(doc: Mapping[str, Any], where: str) -> Camera:
+    if not doc:
+        return Camera()
+    try:
+        return Camera.from_json(doc, source=where)
+    except InputError as exc:
+        raise StageError("locate", f"bad camera intrinsics from {where}: {exc}") from exc
+
+
+def init(params: dict[str, Any]) -> LocateState:
+    doc = params.get("camera") or {}
+    return LocateState(dict(params), dict(doc), _camera(doc, "parameter camera"))
+
+
+def step(state: LocateState, inputs: Inputs) -> tuple[LocateState, list]:
+    """Locate every blob of one frame in 3D; publish ``markers``."""
+    frame, blobs = inputs["clean"], inputs["blobs"]
+    assert isinstance(frame, CleanFrame) and isinstance(blobs, Blobs)
+    p = state.params
+    if not p.get("camera"):
+        doc = frame.camera or {}
+        if doc != state.camera_doc:
+            state = LocateState(p, dict(doc), _camera(doc, "clean frame camera"))
+    centroid = np.asarray(blobs.centroid, dtype=np.float64).reshape(-1, 2)
+    rr = np.asarray(blobs.region_radius, dtype=np.float64)
+    z, pos = locate_all(np.asarray(frame.depth), centroid, rr, state.camera, p)
+    out = Markers3D.follow(
+        blobs.header,
+        centroid=centroid,
+        marker_radius=np.asarray(blobs.marker_radius, dtype=np.float64),
+        region_radius=rr,
+        depth=z,
+        position=pos,
+        threshold=float(blobs.threshold),
+    )
+    return state, [out]
+
+
+SPEC = StageSpec(
+    name="locate",
+    params=PARAMS,
+    init=init,
+    step=step,
+    stateful=False,
+    doc=__doc__ or "",
+)

@@ -1,0 +1,514 @@
+"""Stage ``model``: the person-centric subject model from the static recording (Sec. IV-B).
+
+The subject stands still, side-on, on the walking line. Every frame of the static trial is
+labelled by layout (height above the floor plane, order along the walking axis, near/far by
+depth), and at the end of the trial the per-marker median over the frames gives the model:
+
+- ``reference``: the standing pose, camera mm (20, 3), NaN = not seen;
+- ``distances``: the inter-marker distances (20, 20), mm;
+- ``near_side``: the side that faced the camera (``L`` or ``R``);
+- ``extra["layout"]``: per site (SHO, ASI, ..., TOE) the body-frame position
+  [forward, height, lateral] in mm: forward along the facing direction from the pelvis
+  centre (mean of ASI and PSI), height above the floor, lateral outward from the body's
+  mid-plane. Measured on the near side (far ASI/PSI also when seen), the rest from a
+  default adult template scaled to the subject's shoulder height;
+- ``extra["site_distances"]``: near-side distances between sites (10, 10) mm, the rigid
+  segment lengths the label stage checks (thigh, shank, foot triangle);
+- ``extra`` also holds the H*/W* style measurements: heights above the floor per site,
+  thigh (HIP-KNE), shank (KNE-ANK), foot (HEE-TOE) lengths, and the facing direction.
+
+The paper's H0*, H7*, W3*-W9* and virtual lines L12-L16 exist only in its Fig. 5 [A-M2];
+this model keeps their intent (heights and distances among markers, per side) in 3D.
+
+Conventions: floor frame from the calibration record: a = along the walking line (toward
++u), e = horizontal away from the camera, h = height above the floor; mm; NaN = missing.
+Handedness: a subject facing +a has the right side toward the camera (camera X right,
+Y down, Z forward, right-handed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from gaitflow.schemas import CalibrationRecord, Markers3D, Message, SubjectModel
+from gaitflow.stages.base import StageSpec
+
+from gaitflow.errors import StageError
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES, SITES
+from gaitflow.params import Param, ParamSet
+
+NAME = "model"
+
+# Default adult template, body frame [forward, height, lateral] mm, shoulder 1450 mm high.
+# Forward is from the pelvis centre; lateral is outward from the mid-plane. Typical values
+# for the marker placements of the Plug-in Gait / CGM lower-body set (HIP = greater
+# trochanter); used to label the static pose and for sites it could not measure.
+TEMPLATE_SHO_HEIGHT = 1450.0
+TEMPLATE: dict[str, tuple[float, float, float]] = {
+    "SHO": (-20.0, 1450.0, 170.0),
+    "ASI": (110.0, 985.0, 110.0),
+    "PSI": (-110.0, 1015.0, 60.0),
+    "HIP": (0.0, 915.0, 150.0),
+    "THI": (30.0, 650.0, 100.0),
+    "KNE": (0.0, 505.0, 70.0),
+    "TIB": (20.0, 230.0, 55.0),
+    "ANK": (0.0, 75.0, 45.0),
+    "HEE": (-60.0, 42.0, 35.0),
+    "TOE": (135.0, 45.0, 35.0),
+}
+
+
+def body_cluster(P: np.ndarray, radius: float) -> np.ndarray:
+    """Boolean mask of the blobs that belong to the subject, (N, 3) floor coords.
+
+    The subject's markers crowd within a body radius of each other horizontally; stray
+    reflectors (on walls, furniture, the floor) stand apart. The seed is the blob with the
+    most horizontal neighbours within ``radius``; members lie within ``radius`` of the
+    seed's neighbourhood median.
+    """
+    if len(P) == 0:
+        return np.zeros(0, bool)
+    dh = np.hypot(P[:, None, 0] - P[None, :, 0], P[:, None, 1] - P[None, :, 1])
+    counts = (dh < radius).sum(axis=1)
+    seed = int(np.argmax(counts))
+    nb = P[dh[seed] < radius]
+    c = np.median(nb[:, :2], axis=0)
+    return np.hypot(P[:, 0] - c[0], P[:, 1] - c[1]) < radius
+
+
+PARAMS = ParamSet(
+    NAME,
+    (
+        Param("subject", str, "", "", "pseudonymous subject id written into the model"),
+        Param("marker_diameter_mm", float, 25.0, "mm", "marker diameter", 1.0, 100.0),
+        Param(
+            "gate_sigma",
+            float,
+            4.0,
+            "sigma",
+            "a blob further than this from the scaled template is left unlabelled",
+            1.0,
+            100.0,
+        ),
+        Param(
+            "body_radius_mm",
+            float,
+            700.0,
+            "mm",
+            "blobs further than this horizontally from the body axis are strays",
+            100.0,
+            3000.0,
+        ),
+        Param(
+            "camera_height_mm",
+            float,
+            800.0,
+            "mm",
+            "camera height assumed when the calibration has no floor plane",
+            100.0,
+            5000.0,
+        ),
+    ),
+)
+
+
+# --- the floor frame ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FloorFrame:
+    """Camera space <-> floor frame (a, e, h): rows of ``rot`` are the floor axes."""
+
+    rot: np.ndarray  # (3, 3): e1 (walking axis, +u), e2 (away from camera), e3 (up)
+    origin: np.ndarray  # (3,) camera mm, the walking start point on the floor
+    length: float = 0.0  # walking line length L (end at a = L); 0 without a calibration
+
+    def to_floor(self, p: np.ndarray) -> np.ndarray:
+        """Camera points (..., 3) mm -> floor coordinates (..., 3) = (a, e, h)."""
+        return (np.asarray(p, dtype=np.float64) - self.origin) @ self.rot.T
+
+    def to_camera(self, q: np.ndarray) -> np.ndarray:
+        """Floor coordinates (..., 3) -> camera points (..., 3) mm."""
+        return np.asarray(q, dtype=np.float64) @ self.rot + self.origin
+
+    @classmethod
+    def from_record(cls, rec: CalibrationRecord | None, camera_height_mm: float) -> FloorFrame:
+        """The floor frame of a calibration record.
+
+        Without a usable plane (no record, or NaN) the camera is assumed level at
+        ``camera_height_mm``: a = X, e = Z, h = camera height - Y.
+        """
+        if rec is not None:
+            plane = np.asarray(rec.floor_plane, dtype=np.float64)
+            start = np.asarray(rec.start, dtype=np.float64)
+            end = np.asarray(rec.end, dtype=np.float64)
+            if np.isfinite(plane).all() and np.isfinite(start).all() and np.isfinite(end).all():
+                n = plane[:3] / np.linalg.norm(plane[:3])
+                e1 = end - start
+                e1 = e1 - (e1 @ n) * n
+                norm = np.linalg.norm(e1)
+                if norm > 0:
+                    e1 = e1 / norm
+                    if e1[0] < 0:
+                        e1 = -e1
+                    e2 = np.cross(n, e1)
+                    # Origin on the floor plane: height 0 there.
+                    origin = start - (n @ start + plane[3] / np.linalg.norm(plane[:3])) * n
+                    return cls(np.stack([e1, e2, n]), origin, float(np.linalg.norm(end - start)))
+        rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+        return cls(rot, np.array([0.0, camera_height_mm, 0.0]))
+
+
+# --- labelling a standing pose --------------------------------------------------------
+
+
+def template_layout(scale: float = 1.0) -> np.ndarray:
+    """The default template as a (10, 3) array [forward, height, lateral] in SITES order."""
+    return np.array([TEMPLATE[s] for s in SITES]) * scale
+
+
+def site_index(name: str) -> int:
+    """Index of a marker's site (e.g. ``R_KNE`` -> SITES.index("KNE"))."""
+    return SITES.index(name.split("_", 1)[1])
+
+
+def body_to_floor(layout: np.ndarray, centre: np.ndarray, facing: int) -> np.ndarray:
+    """Template layout (10, 3) -> floor positions (20, 3) in MARKER_NAMES order.
+
+    ``centre`` is the floor position (a, e, h-ignored) of the pelvis centre; ``facing`` the
+    walking direction (+1: toward +a). The near side (R when facing +1) is at smaller e.
+    """
+    out = np.full((20, 3), np.nan)
+    near = "R" if facing > 0 else "L"
+    for i, name in enumerate(MARKER_NAMES):
+        f, h, lat = layout[site_index(name)]
+        sign = -1.0 if name[0] == near else 1.0
+        out[i] = (centre[0] + facing * f, centre[1] + sign * lat, h)
+    return out
+
+
+def facing_from_feet(pts: np.ndarray, sho_height: float) -> int:
+    """Facing direction of a standing subject from the foot markers (floor coords, (N, 3)).
+
+    The toe marker lies far in front of the ankle, the heel a little behind it. Among the
+    low markers (below 12% of shoulder height) the ankle is the highest; the marker of the
+    same foot furthest from it along the walking axis is the toe, and its side is the
+    facing direction. Returns +1 or -1, or 0 when undecidable.
+    """
+    low = pts[pts[:, 2] < 0.12 * sho_height]
+    if len(low) < 2:
+        return 0
+    ank = low[np.argmax(low[:, 2])]
+    rest = low[np.arange(len(low)) != np.argmax(low[:, 2])]
+    # Only the ankle's own foot: markers within a foot length horizontally.
+    near = rest[np.hypot(rest[:, 0] - ank[0], rest[:, 1] - ank[1]) < 0.2 * sho_height]
+    if len(near) == 0:
+        return 0
+    da = near[:, 0] - ank[0]
+    s = float(da[np.argmax(np.abs(da))])
+    return 0 if abs(s) < 20.0 else int(np.sign(s))
+
+
+def _facing_from_mass(pts: np.ndarray, sho_h: float) -> int:
+    """Facing from where the feet lie: the toes reach forward of the pelvis, the heels
+    only a little behind it, so the low markers' mean lies ahead of the pelvis markers'."""
+    if len(pts) == 0:
+        return 0
+    pts = pts[body_cluster(pts, 0.4 * sho_h)]
+    low = pts[pts[:, 2] < 0.1 * sho_h]
+    pel = pts[(pts[:, 2] > 0.55 * sho_h) & (pts[:, 2] < 0.8 * sho_h)]
+    if len(low) == 0 or len(pel) == 0:
+        return 0
+    d = float(low[:, 0].mean() - 0.5 * (pel[:, 0].min() + pel[:, 0].max()))
+    return 0 if abs(d) < 15.0 else int(np.sign(d))
+
+
+def label_pose(
+    pts: np.ndarray, facing: int, layout: np.ndarray, gate_sigma: float = 4.0
+) -> np.ndarray:
+    """Label the blobs of one standing pose by layout rules.
+
+    Parameters
+    ----------
+    pts : (N, 3) floor coordinates (a, e, h) of the blobs (NaN rows ignored).
+    facing : +1 / -1, the walking direction the subject faces.
+    layout : (10, 3) body-frame [forward, height, lateral] per site; only the heights
+        (as fractions of the shoulder height) are used, to cut the body into bands.
+    gate_sigma : unused by the rules; kept for the template-based interface.
+
+    Returns
+    -------
+    (20,) int: blob index per marker, -1 = not seen.
+
+    Rules (side view, subject standing): the shoulder is the highest body blob; the
+    body's mid-plane lies between the near and far ASI (or a default lateral offset from
+    the shoulder), splitting near from far. Pelvis band: the near HIP is the lowest near
+    blob (when clearly lower), then PSI is the rearmost and ASI the foremost; far PSI/ASI
+    likewise. Thigh band: THI above KNE. Shank/foot band: TIB is the highest near blob
+    above the ankle band; of the low near blobs TOE is the foremost, ANK the highest of the
+    rest and HEE the last; the far heel and toe are the rearmost and foremost low far blobs.
+    """
+    del gate_sigma
+    out = np.full(20, -1)
+    ok = np.flatnonzero(np.isfinite(pts).all(axis=1))
+    if ok.size == 0:
+        return out
+    P = pts[ok]
+    H0 = layout[SITES.index("SHO"), 1]
+    member = body_cluster(P, 0.4 * H0)
+    ok, P = ok[member], P[member]
+    if len(P) < 3:
+        return out
+    near = "R" if facing > 0 else "L"
+    far = "L" if near == "R" else "R"
+    f = facing * P[:, 0]
+    h = P[:, 2]
+    e = P[:, 1]
+    # The shoulder: of the blobs near the top, the one nearest the camera (the far
+    # shoulder can peek over the near one, a little higher).
+    top = np.flatnonzero(h > 0.92 * h.max())
+    sho = int(top[np.argmin(e[top])])
+    H = float(h[sho])
+    out[MARKER_INDEX[f"{near}_SHO"]] = ok[sho]
+    frac = {s: layout[SITES.index(s), 1] / H0 for s in SITES}
+    lo_pel = 0.5 * (frac["HIP"] + frac["THI"]) * H
+    hi_pel = 0.5 * (1.0 + max(frac["ASI"], frac["PSI"])) * H
+    lo_leg = 0.5 * (frac["TIB"] + frac["KNE"]) * H
+    # Ankle, heel and toe sit below ~7% of shoulder height, a tibia marker above ~10%.
+    lo_shank = 0.085 * H
+    pel = np.flatnonzero((h > lo_pel) & (h < hi_pel))
+    # Mid-plane: the near shoulder is about its lateral offset in front of it.
+    e_mid = e[sho] + layout[SITES.index("SHO"), 2] * H / H0
+    if len(pel) >= 2:
+        # Near and far ASI bracket it: the largest gap in depth among the pelvis blobs.
+        es = np.sort(e[pel])
+        gaps = np.diff(es)
+        g = int(np.argmax(gaps))
+        if gaps[g] > 0.05 * H:
+            e_mid = 0.5 * (es[g] + es[g + 1])
+    is_near = e < e_mid
+
+    def put(name: str, i: int) -> None:
+        out[MARKER_INDEX[name]] = ok[i]
+
+    for side, sel in ((near, is_near), (far, ~is_near)):
+        c = [i for i in pel if sel[i]]
+        if side == near and len(c) >= 2:
+            low = min(c, key=lambda i: h[i])
+            others = [i for i in c if i != low]
+            if len(c) >= 3 or h[low] < min(h[i] for i in others) - 0.03 * H:
+                put(f"{side}_HIP", low)
+                c = others
+        if len(c) >= 2:
+            c = sorted(c, key=lambda i: f[i])
+            put(f"{side}_PSI", c[0])
+            put(f"{side}_ASI", c[-1])
+        elif len(c) == 1:
+            # One pelvis blob: front or back of the pelvis, judged against the shoulder.
+            put(f"{side}_ASI" if f[c[0]] > f[sho] else f"{side}_PSI", c[0])
+    leg = [i for i in np.flatnonzero((h > lo_leg) & (h <= lo_pel)) if is_near[i]]
+    leg = sorted(leg, key=lambda i: -h[i])
+    if len(leg) >= 2:
+        put(f"{near}_THI", leg[0])
+        put(f"{near}_KNE", leg[-1])
+    elif len(leg) == 1:
+        th, kn = frac["THI"] * H, frac["KNE"] * H
+        put(f"{near}_THI" if abs(h[leg[0]] - th) < abs(h[leg[0]] - kn) else f"{near}_KNE", leg[0])
+    shank = [i for i in np.flatnonzero((h > lo_shank) & (h <= lo_leg)) if is_near[i]]
+    if shank:
+        put(f"{near}_TIB", max(shank, key=lambda i: h[i]))
+    for side, sel in ((near, is_near), (far, ~is_near)):
+        low = [i for i in np.flatnonzero(h <= lo_shank) if sel[i]]
+        if not low:
+            continue
+        low = sorted(low, key=lambda i: f[i])
+        if side == near:
+            put(f"{side}_TOE", low[-1])
+            rest = low[:-1]
+            if rest:
+                ank = max(rest, key=lambda i: h[i])
+                put(f"{side}_ANK", ank)
+                rest = [i for i in rest if i != ank]
+                if rest:
+                    put(f"{side}_HEE", rest[0])
+        elif len(low) >= 2:
+            put(f"{side}_HEE", low[0])
+            put(f"{side}_TOE", low[-1])
+    return out
+
+
+# --- the stage core ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ModelState:
+    """Positions accumulated over the static trial."""
+
+    params: dict[str, Any]
+    frames: tuple[np.ndarray, ...] = ()  # each (N, 3) camera mm, normal mode
+    last_header: Any = None
+    calibration: CalibrationRecord | None = None
+    published: bool = False
+
+
+def init(params: dict[str, Any]) -> ModelState:
+    """Initial state; ``params`` are resolved by :data:`PARAMS`."""
+    return ModelState(params=dict(params))
+
+
+def build_model(
+    frames: tuple[np.ndarray, ...] | list[np.ndarray],
+    frame: FloorFrame,
+    marker_diameter_mm: float = 25.0,
+    gate_sigma: float = 4.0,
+) -> dict[str, Any]:
+    """Build the subject model from the static frames.
+
+    Parameters
+    ----------
+    frames : per frame, (N, 3) camera-space blob positions (normal mode), mm.
+    frame : the floor frame.
+
+    Returns
+    -------
+    dict with ``reference`` (20, 3), ``distances`` (20, 20), ``near_side`` and ``extra``.
+    """
+    floors = [frame.to_floor(f.reshape(-1, 3)) for f in frames if len(f)]
+    # The shoulder: the highest blob near the body, per frame (median over frames).
+    tops = []
+    for f in floors:
+        g = f[np.isfinite(f).all(axis=1)]
+        if len(g):
+            # A first guess of the body size only serves to find the body cluster.
+            g = g[body_cluster(g, 0.4 * TEMPLATE_SHO_HEIGHT)]
+            tops.append(float(g[:, 2].max()))
+    sho_h = float(np.median(tops)) if tops else TEMPLATE_SHO_HEIGHT
+    if not 0.5 * TEMPLATE_SHO_HEIGHT < sho_h < 1.5 * TEMPLATE_SHO_HEIGHT:
+        sho_h = TEMPLATE_SHO_HEIGHT
+    layout = template_layout(sho_h / TEMPLATE_SHO_HEIGHT)
+    votes = [facing_from_feet(f[np.isfinite(f).all(axis=1)], sho_h) for f in floors]
+    votes += [_facing_from_mass(f[np.isfinite(f).all(axis=1)], sho_h) for f in floors]
+    facing = 1 if sum(votes) >= 0 else -1
+    near = "R" if facing > 0 else "L"
+    # The subject stands still: take the frame that shows the most body blobs as the key
+    # frame, smooth each of its blobs with the median of its matches (within 25 mm) in the
+    # other frames, and label that one pose.
+    floor_ref = np.full((20, 3), np.nan)
+    valid = [f[np.isfinite(f).all(axis=1)] for f in floors]
+    sizes = [int(body_cluster(f, 0.4 * sho_h).sum()) if len(f) else 0 for f in valid]
+    if sizes and max(sizes) > 0:
+        key = valid[int(np.argmax(sizes))]
+        smooth = key.copy()
+        for b in range(len(key)):
+            matches = []
+            for f in valid:
+                if len(f):
+                    dd = np.linalg.norm(f - key[b], axis=1)
+                    if dd.min() < 25.0:
+                        matches.append(f[np.argmin(dd)])
+            # A blob seen in fewer than half the frames is a transient (a hand, a glint).
+            smooth[b] = np.median(matches, axis=0) if len(matches) >= len(valid) / 2 else np.nan
+        idx = label_pose(smooth, facing, layout, gate_sigma)
+        for i in np.flatnonzero(idx >= 0):
+            floor_ref[i] = smooth[idx[i]]
+    reference = frame.to_camera(floor_ref)
+    diff = reference[:, None, :] - reference[None, :, :]
+    distances = np.linalg.norm(diff, axis=2)
+    # Body-frame layout of the sites, measured on the near side.
+    pel = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("ASI", "PSI")]
+    centre = np.nanmean(floor_ref[pel], axis=0) if np.isfinite(floor_ref[pel]).any() else None
+    measured = layout.copy()
+    seen: dict[str, bool] = {}
+    if centre is not None:
+        near_e = [floor_ref[MARKER_INDEX[f"{near}_{s}"], 1] for s in SITES]
+        far = "L" if near == "R" else "R"
+        far_e = [floor_ref[MARKER_INDEX[f"{far}_{s}"], 1] for s in ("ASI", "PSI")]
+        both = [e for e in (*near_e[1:3], *far_e) if np.isfinite(e)]
+        mid_e = float(np.mean(both)) if len(both) == 4 else centre[1]
+        for j, s in enumerate(SITES):
+            q = floor_ref[MARKER_INDEX[f"{near}_{s}"]]
+            if np.isfinite(q).all():
+                measured[j] = (facing * (q[0] - centre[0]), q[2], mid_e - q[1])
+                seen[s] = True
+            else:
+                seen[s] = False
+    site_d = np.linalg.norm(measured[:, None, :] - measured[None, :, :], axis=2)
+    near_ref = floor_ref[[MARKER_INDEX[f"{near}_{s}"] for s in SITES]]
+    with np.errstate(invalid="ignore"):
+        nd = np.linalg.norm(near_ref[:, None, :] - near_ref[None, :, :], axis=2)
+    site_d = np.where(np.isfinite(nd), nd, site_d)
+
+    def seg(a: str, b: str) -> float:
+        return float(site_d[SITES.index(a), SITES.index(b)])
+
+    extra = {
+        "facing": facing,
+        "frames_used": len(floors),
+        "sho_height_mm": sho_h,
+        "layout": {s: [float(x) for x in measured[j]] for j, s in enumerate(SITES)},
+        "measured": seen,
+        "site_distances": site_d.tolist(),
+        "heights_mm": {s: float(measured[j, 1]) for j, s in enumerate(SITES)},
+        "thigh_mm": seg("HIP", "KNE"),
+        "shank_mm": seg("KNE", "ANK"),
+        "foot_mm": seg("HEE", "TOE"),
+    }
+    return {
+        "reference": reference,
+        "distances": distances,
+        "near_side": near,
+        "marker_diameter_mm": marker_diameter_mm,
+        "extra": extra,
+    }
+
+
+def _publish(state: ModelState, hdr: Any) -> SubjectModel:
+    p = state.params
+    ff = FloorFrame.from_record(state.calibration, p["camera_height_mm"])
+    m = build_model(state.frames, ff, p["marker_diameter_mm"], p["gate_sigma"])
+    return SubjectModel.follow(hdr, subject=p["subject"], **m)
+
+
+def step(state: ModelState, inputs: Mapping[str, Message]) -> tuple[ModelState, list[Message]]:
+    """Accumulate one static frame; publish the SubjectModel on the trial's last frame.
+
+    Parameters
+    ----------
+    inputs : ``{"markers": Markers3D, "calibration": CalibrationRecord}``.
+    """
+    mk = inputs["markers"]
+    if not isinstance(mk, Markers3D):
+        raise StageError(NAME, f"input 'markers' is a {type(mk).__name__}, not Markers3D")
+    cal = inputs.get("calibration")
+    pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)[:, 0, :]
+    st = replace(
+        state,
+        frames=(*state.frames, pos.copy()),
+        last_header=mk.header,
+        calibration=cal if isinstance(cal, CalibrationRecord) else state.calibration,
+        published=False,
+    )
+    if mk.header.last:
+        return replace(st, frames=(), published=True), [_publish(st, mk.header)]
+    return st, []
+
+
+def finish(state: ModelState) -> tuple[ModelState, list[Message]]:
+    """Publish the model if the static trial ended without a ``last`` frame."""
+    if state.published or state.last_header is None or not state.frames:
+        return state, []
+    return replace(state, frames=(), published=True), [_publish(state, state.last_header)]
+
+
+SPEC = StageSpec(
+    name=NAME,
+    params=PARAMS,
+    init=init,
+    step=step,
+    finish=finish,
+    stateful=True,
+    doc=__doc__ or "",
+)

@@ -1,0 +1,219 @@
+"""Alg. 1 (adaptive threshold) and Alg. 2 (blobs) on small literal frames."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+from gaitflow.schemas import Blobs, CalibrationRecord, CleanFrame
+from gaitflow.stages import detect
+
+
+def disc(img: np.ndarray, u0: float, v0: float, radius: float, gain: float, ss: int = 8) -> None:
+    """Add a supersampled disc of ``radius`` px at (u0, v0), amplitude ``gain``, in place."""
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    h, w = img.shape
+    for r in range(max(int(v0 - radius) - 1, 0), min(int(v0 + radius) + 2, h)):
+        for c in range(max(int(u0 - radius) - 1, 0), min(int(u0 + radius) + 2, w)):
+            yy, xx = np.meshgrid(r + o, c + o, indexing="ij")
+            img[r, c] += gain * np.mean((xx - u0) ** 2 + (yy - v0) ** 2 <= radius * radius)
+
+
+def frame(shape=(120, 160), bg=800.0, noise=20.0, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.normal(bg, noise, shape)
+
+
+def u16(img: np.ndarray) -> np.ndarray:
+    return np.clip(img, 0, 65535).astype(np.uint16)
+
+
+def params(**kw):
+    return detect.PARAMS.resolve(kw)
+
+
+def clean_msg(ir: np.ndarray, trial: str = "walk-01", idx: int = 0) -> CleanFrame:
+    return CleanFrame(
+        header=CleanFrame.make_header("cam0", trial, idx, idx * 33_000_000),
+        ir=ir,
+        depth=np.full(ir.shape, 2500, np.uint16),
+        mask=np.zeros(ir.shape, np.uint8),
+    )
+
+
+@pytest.mark.parametrize("u0, v0", [(60.37, 40.81), (80.5, 61.25), (101.13, 70.66)])
+def test_centroid_of_subpixel_disc_within_005px(u0: float, v0: float) -> None:
+    img = frame(noise=0.0)
+    disc(img, u0, v0, 2.6, 40000.0)
+    det = detect.detect_frame(u16(img), 12000.0, 2.0, (), params(n=1))
+    assert det.blobs.count == 1
+    err = np.hypot(det.centroid[0, 0] - u0, det.centroid[0, 1] - v0)
+    assert err < 0.05, (det.centroid, u0, v0)
+
+
+def test_alg2_weighted_centroid_of_gaussian_blob() -> None:
+    # Alg. 2 alone (no refinement): weights P - e_d on a symmetric profile are unbiased.
+    u0, v0 = 70.3, 50.7
+    rr, cc = np.mgrid[0:100, 0:140]
+    img = 500.0 + 50000.0 * np.exp(-((cc - u0) ** 2 + (rr - v0) ** 2) / (2 * 1.5**2))
+    roi = detect.compact_roi(u16(img), 10000.0)
+    c = detect.components(roi, 10000.0)
+    assert c.count == 1
+    assert np.hypot(c.centroid[0, 0] - u0, c.centroid[0, 1] - v0) < 0.05
+    # r_r is the extent (max distance), r_m the weighted mean distance: r_m < r_r.
+    assert 0 < c.marker_radius[0] < c.region_radius[0]
+
+
+def test_saturated_marker_refinement_beats_flat_top() -> None:
+    # A flat-topped (saturated) marker: refinement uses the partly covered edge pixels.
+    rng = np.random.default_rng(3)
+    errs = {True: [], False: []}
+    for _ in range(12):
+        u0, v0 = 60 + rng.random(), 50 + rng.random()
+        img = frame(noise=0.0)
+        disc(img, u0, v0, 2.2, 3 * 65535.0)
+        for refine in (True, False):
+            det = detect.detect_frame(u16(img), 60000.0, 2.0, (), params(n=1, refine=refine))
+            errs[refine].append(np.hypot(*(det.centroid[0] - (u0, v0))))
+    assert np.mean(errs[True]) < np.mean(errs[False])
+    assert max(errs[True]) < 0.3
+
+
+def markers_and_noise(seed: int = 1) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    rng = np.random.default_rng(seed)
+    img = frame((200, 240), seed=seed)
+    pts = []
+    for k in range(12):
+        u, v = 30 + (k % 4) * 55 + rng.random(), 30 + (k // 4) * 60 + rng.random()
+        disc(img, u, v, 2.0 + rng.random(), 2 * 65535.0)
+        pts.append((u, v))
+    for k in range(5):  # dim, small noise blobs: reflections off clothing
+        disc(img, 50 + k * 40 + rng.random(), 185 + rng.random(), 1.3, 9000.0)
+    return u16(img), pts
+
+
+def test_alg1_converges_to_n_blobs_with_noise_blobs() -> None:
+    ir, pts = markers_and_noise()
+    # w below the noise blobs: f > n at first, step 5 raises e_d until only markers remain.
+    roi = detect.compact_roi(ir, 2000.0)
+    assert detect.components(roi, 2000.0).count == 17
+    det = detect.detect_frame(ir, 2000.0, 2.5, (), params(n=12))
+    assert det.blobs.count == 12
+    assert det.threshold > 2000.0
+    assert 1 <= det.iterations <= 10
+    got = det.centroid
+    for u, v in pts:
+        assert np.min(np.hypot(got[:, 0] - u, got[:, 1] - v)) < 0.5
+
+
+def test_alg1_history_picks_threshold_closest_to_n() -> None:
+    ir, _ = markers_and_noise()
+    hist = (
+        detect.HistoryEntry(2000.0, 60000.0, 3.0),  # 17 blobs
+        detect.HistoryEntry(30000.0, 60000.0, 3.0),  # 12 blobs
+        detect.HistoryEntry(2500.0, 60000.0, 3.0),  # 17 blobs, most recent
+    )
+    det = detect.detect_frame(ir, 2000.0, 2.5, hist, params(n=12))
+    assert det.threshold == 30000.0
+    assert det.iterations == 0
+    assert det.blobs.count == 12
+
+
+def test_alg1_iteration_cap_bounds_work() -> None:
+    ir, _ = markers_and_noise()
+    det = detect.detect_frame(ir, 2000.0, 2.5, (), params(n=3, max_iterations=1))
+    assert det.iterations == 1
+
+
+def test_static_method_uses_fixed_threshold() -> None:
+    ir, _ = markers_and_noise()
+    st = detect.init(params(method="static", static_threshold=2000.0))
+    _, (out,) = detect.step(st, {"clean": clean_msg(ir)})
+    assert isinstance(out, Blobs)
+    assert out.threshold == 2000.0 and out.iterations == 0 and out.method == "static"
+    assert out.centroid.shape == (17, 2)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_roi_components_match_full_frame(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    img = frame((97, 131), seed=seed)
+    for _ in range(rng.integers(1, 30)):
+        u, v = rng.uniform(2, 128), rng.uniform(2, 94)
+        disc(img, u, v, rng.uniform(0.6, 5), rng.uniform(3e3, 9e4))
+    ir = u16(img)
+    level = 1500.0
+    roi = detect.compact_roi(ir, level)
+    for e in (level, 5000.0, 30000.0):
+        c = detect.components(roi, e, min_area=1)
+        n, _, stats, _ = cv2.connectedComponentsWithStats((ir > e).astype(np.uint8), 8)
+        assert c.count == n - 1
+        assert sorted(c.area.tolist()) == sorted(stats[1:, 4].tolist())
+
+
+def test_calibration_record_sets_w_and_r_b() -> None:
+    ir, _ = markers_and_noise()
+    cal = CalibrationRecord(
+        header=CalibrationRecord.make_header("cam0", "calibration", 9, 0, last=True),
+        floor_pixels=np.zeros((0, 2)),
+        floor_points=np.zeros((0, 3)),
+        floor_plane=np.array([0.0, -1.0, 0.0, 800.0]),
+        start=np.zeros(3),
+        end=np.zeros(3),
+        status="Done",
+        w=2000.0,
+        r_b=2.5,
+    )
+    st = detect.init(params())
+    st, (out,) = detect.step(st, {"clean": clean_msg(ir), "calibration": cal})
+    cs = st.cameras["cam0"]
+    assert (cs.w, cs.r_b) == (2000.0, 2.5)
+    assert out.centroid.shape[0] == 12
+    # Without a record, w and r_b come from the image and detection still works.
+    st2, (out2,) = detect.step(detect.init(params()), {"clean": clean_msg(ir)})
+    assert np.isfinite(st2.cameras["cam0"].w) and st2.cameras["cam0"].r_b > 0
+    assert out2.centroid.shape[0] == 12
+
+
+def test_history_is_per_trial_and_bounded() -> None:
+    ir, _ = markers_and_noise()
+    st = detect.init(params(b=3))
+    for k in range(5):
+        st, _ = detect.step(st, {"clean": clean_msg(ir, idx=k)})
+    assert len(st.cameras["cam0"].history) == 3
+    st, _ = detect.step(st, {"clean": clean_msg(ir, trial="walk-02")})
+    assert len(st.cameras["cam0"].history) == 1
+
+
+def _timed_step(ir: np.ndarray) -> tuple[Blobs, float]:
+    st = detect.init(params())
+    t = time.perf_counter()
+    _, (out,) = detect.step(st, {"clean": clean_msg(ir)})
+    return out, time.perf_counter() - t
+
+
+def test_all_zero_frame_gives_no_blobs() -> None:
+    out, dt = _timed_step(np.zeros((424, 512), np.uint16))
+    assert out.centroid.shape == (0, 2) and out.status == "empty"
+    assert dt < 2.0
+
+
+def test_saturated_frame_is_rejected_not_a_marker() -> None:
+    out, dt = _timed_step(np.full((424, 512), 65535, np.uint16))
+    assert out.centroid.shape == (0, 2)
+    assert out.status == "empty" and out.rejected >= 1
+    assert dt < 2.0
+
+
+def test_frame_with_300_blobs_is_bounded() -> None:
+    img = np.full((424, 512), 500.0)
+    rr, cc = np.mgrid[0:20, 0:15]
+    ys, xs = 10 + rr.ravel() * 20, 10 + cc.ravel() * 33
+    for y, x in zip(ys, xs, strict=True):
+        img[y - 1 : y + 2, x - 1 : x + 2] = 65535
+    out, dt = _timed_step(u16(img))
+    assert out.status == "too-many"
+    assert out.centroid.shape == (64, 2)  # max_blobs
+    assert dt < 2.0

@@ -1,0 +1,249 @@
+"""Pure gait core: gap filling, resampling, knee angle, Alg. 6, events, parameters, passes."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from gaitflow import gaitcore as gc
+
+NAN = np.nan
+
+
+# --- gap filling -------------------------------------------------------------------------------
+
+
+def test_fill_gaps_linear_is_exact_and_marks_filled():
+    t = np.arange(7.0)
+    x = np.array([0.0, 1.0, 2.0, NAN, NAN, 5.0, 6.0])
+    y, filled = gc.fill_gaps(t, x, max_gap_s=3.0)
+    np.testing.assert_allclose(y, np.arange(7.0))
+    assert filled.tolist() == [False, False, False, True, True, False, False]
+
+
+def test_fill_gaps_cubic_bezier_literal_values():
+    # P0 = 1 at t=1 with tangent 1 (from t=0), P3 = 1 at t=4 with tangent -1 (to t=5):
+    # P1 = 1 + 1*3/3 = 2, P2 = 1 - (-1)*3/3 = 2 -> B(1/3) = B(2/3) = 1 + 6*(1/3)*(2/3) = 1+4/3*..
+    t = np.arange(6.0)
+    x = np.array([0.0, 1.0, NAN, NAN, 1.0, 0.0])
+    y, _ = gc.fill_gaps(t, x, max_gap_s=3.0)
+    s = np.array([1 / 3, 2 / 3])
+    expect = (1 - s) ** 3 * 1 + 3 * (1 - s) ** 2 * s * 2 + 3 * (1 - s) * s**2 * 2 + s**3 * 1
+    np.testing.assert_allclose(y[2:4], expect)
+    np.testing.assert_allclose(y[2:4], [5 / 3, 5 / 3])
+
+
+def test_fill_gaps_respects_max_gap_and_ends():
+    t = np.arange(10.0) / 30.0
+    x = np.array([NAN, 1, 2, NAN, NAN, NAN, NAN, NAN, NAN, 9.0])
+    y, filled = gc.fill_gaps(t, x, max_gap_s=0.2)  # gap spans 7 frame intervals = 0.233 s
+    assert np.isnan(y[0]) and np.isnan(y[3:9]).all()
+    assert not filled.any()
+    y, filled = gc.fill_gaps(t, x, max_gap_s=0.25)
+    assert np.isnan(y[0]) and np.isfinite(y[3:9]).all() and filled[3:9].all()
+
+
+def test_fill_gaps_rows_missing_as_a_whole():
+    t = np.arange(5.0)
+    x = np.array([[0, 0, 0], [1, 1, 1], [2, NAN, 2], [3, 3, 3], [4, 4, 4.0]])
+    y, filled = gc.fill_gaps(t, x, max_gap_s=2.0)
+    np.testing.assert_allclose(y[2], [2, 2, 2])
+    assert filled.tolist() == [False, False, True, False, False]
+
+
+# --- resampling --------------------------------------------------------------------------------
+
+
+def test_resample_catmull_rom_literal():
+    t = np.arange(4.0)
+    x = np.array([0.0, 0.0, 1.0, 3.0])
+    tq, xq = gc.resample(t, x, rate_hz=2.0)
+    np.testing.assert_allclose(tq, [0, 0.5, 1, 1.5, 2, 2.5, 3])
+    # segment 1-2: P0=0, P1=0+(1-0)/6, P2=1-(3-0)/6, P3=1 -> B(1/2) = 0.375
+    assert xq[3] == pytest.approx(0.375)
+    np.testing.assert_allclose(xq[[0, 2, 4, 6]], x)
+
+
+def test_resample_uses_timestamps_and_keeps_gaps():
+    t = np.array([0.0, 1 / 30, 2 / 30, 4 / 30, 5 / 30])  # frame 3 dropped
+    x = 10.0 * t
+    tq, xq = gc.resample(t, x, 100.0)
+    np.testing.assert_allclose(xq, 10.0 * tq, atol=1e-9)
+    x2 = np.array([0.0, 1.0, NAN, 3.0, 4.0])
+    tq, xq = gc.resample(t, x2, 100.0)
+    inside = (tq > 1 / 30 + 1e-9) & (tq < 4 / 30 - 1e-9)
+    assert np.isnan(xq[inside]).all() and np.isfinite(xq[~inside]).all()
+
+
+def test_resample_2d_and_rate():
+    t = np.arange(31) / 30.0
+    x = np.stack([np.sin(t), np.cos(t)], axis=1)
+    tq, xq = gc.resample(t, x, 100.0)
+    assert xq.shape == (101, 2)
+    truth = np.stack([np.sin(tq), np.cos(tq)], 1)
+    # interior segments use central tangents (third order); the end ones one-sided tangents
+    np.testing.assert_allclose(xq[4:-4], truth[4:-4], atol=1e-5)
+    np.testing.assert_allclose(xq, truth, atol=2e-4)
+
+
+# --- geometry ----------------------------------------------------------------------------------
+
+
+def test_knee_flexion_literal_triangles():
+    knee = np.zeros(3)
+    assert gc.knee_flexion([0, 1, 0], knee, [0, -1, 0]) == pytest.approx(0.0)
+    assert gc.knee_flexion([0, 1, 0], knee, [1, 0, 0]) == pytest.approx(90.0)
+    assert gc.knee_flexion([0, 400, 0], knee, [100, -100, 0]) == pytest.approx(45.0)
+    assert gc.knee_flexion([3, 4, 0], [0, 0, 0], [3, 4, 0]) == pytest.approx(180.0)
+    assert np.isnan(gc.knee_flexion([NAN, 1, 0], knee, [0, -1, 0]))
+    many = gc.knee_flexion(
+        np.tile([0, 1, 0.0], (4, 1)), np.zeros((4, 3)), np.tile([0, -1, 0.0], (4, 1))
+    )
+    assert many.shape == (4,)
+
+
+def test_plane_height_and_progression():
+    plane = np.array([0.0, -1.0, 0.0, 800.0])  # camera Y down, floor 800 mm below
+    assert gc.plane_height([10, 750, 2000], plane) == pytest.approx(50.0)
+    ax = gc.walking_axis([-1000, 800, 2500], [1000, 800, 2600], plane)
+    assert ax[1] == pytest.approx(0.0) and np.linalg.norm(ax) == pytest.approx(1.0)
+    assert gc.progression([1000, 0, 2500], [0, 0, 2500], [1, 0, 0]) == pytest.approx(1000)
+
+
+# --- Alg. 6 ------------------------------------------------------------------------------------
+
+RATE = 100.0
+CONTACTS = [(0.00, 0.35), (1.00, 1.45), (2.10, 2.55), (3.20, 3.60)]  # heel on the floor (s)
+
+
+def synthetic_heel(n_end: float = 3.6):
+    """Heel height: flat (noisy) on the floor, a half-sine arc in swing (steep walls)."""
+    t = np.arange(0, n_end + 1e-9, 1 / RATE)
+    h = np.zeros_like(t)
+    for (_, off), (on, _) in itertools.pairwise(CONTACTS):
+        sw = (t > off) & (t < on)
+        h[sw] = 250.0 * np.sin(np.pi * (t[sw] - off) / (on - off))
+    h += 30.0 + np.random.default_rng(3).normal(0, 1.0, t.shape)
+    return t, h
+
+
+@pytest.mark.parametrize("rate", [0.33, 0.03])
+def test_inflection_search_finds_known_contacts(rate):
+    t, h = synthetic_heel()
+    res = gc.inflection_search(h, gamma=0.05, xi=rate, phi=rate, tau=3)
+    # interior stances: both ends locked near the true contact and lift-off
+    locked = [r for r in res.ranges if r.left_locked and r.right_locked]
+    assert len(locked) == 2
+    for r, (on, off) in zip(locked, CONTACTS[1:3], strict=True):
+        assert abs(t[r.left] - on) <= 0.05, (t[r.left], on)
+        assert abs(t[r.right] - off) <= 0.05, (t[r.right], off)
+    # the first and last stances are cut by the recording: one end open, never an event
+    first, last = res.ranges[0], res.ranges[-1]
+    assert first.left_open and first.right_locked and abs(t[first.right] - 0.35) <= 0.05
+    assert last.right_open and last.left_locked and abs(t[last.left] - 3.2) <= 0.05
+    assert len(res.peaks) == 3
+    for p, ((_, off), (on, _)) in zip(res.peaks, itertools.pairwise(CONTACTS), strict=True):
+        assert abs(t[p] - (off + on) / 2) <= 0.05
+
+
+def test_inflection_search_ignores_high_dips_and_short_ranges():
+    t, h = synthetic_heel()
+    # a dip at the top of a swing (toe-clearance-like) must not become a contact
+    mid = (t > 0.62) & (t < 0.78)
+    h[mid] = 180.0
+    res = gc.inflection_search(h, xi=0.33, phi=0.33)
+    assert len(res.ranges) == 4
+    assert gc.inflection_search(np.full(50, 3.0)).ranges == ()
+    assert gc.inflection_search(np.array([NAN, 1.0])).ranges == ()
+
+
+def test_inflection_search_missing_data_opens_ends():
+    t, h = synthetic_heel()
+    h[(t > 1.2) & (t < 1.3)] = NAN  # data lost inside the second stance
+    res = gc.inflection_search(h, xi=0.33, phi=0.33)
+    around = [r for r in res.ranges if 0.9 <= t[r.left] <= 1.5]
+    assert around and all(
+        (r.right_open or r.left_open) for r in around if t[r.left] < 1.25 < t[r.right] + 0.06
+    )
+
+
+# --- events and parameters ---------------------------------------------------------------------
+
+
+def synthetic_walk(side_offset: float, stride_mm: float = 1200.0, period: float = 1.1):
+    """Heel/toe of one foot walking forward: stance 62 %, swing moves the foot one stride."""
+    t = np.arange(0, 4.4, 1 / RATE)
+    phase = ((t - side_offset) / period) % 1.0
+    cycle = np.floor((t - side_offset) / period)
+    stance = phase < 0.62
+    sw = np.clip((phase - 0.62) / 0.38, 0, 1)
+    # the foot moves at a constant speed in swing and stops dead on the floor
+    prog = (cycle + np.where(stance, 0.0, sw)) * stride_mm
+    heel_h = 25.0 + np.where(stance, 0.0, 200.0 * np.sin(np.pi * sw))
+    toe_h = 30.0 + np.where(stance, 0.0, 90.0 * np.sin(np.pi * sw))
+    hs = [side_offset + k * period for k in range(5) if 0.1 < side_offset + k * period < 4.1]
+    to = [side_offset + (k + 0.62) * period for k in range(5)]
+    to = [x for x in to if 0.1 < x < 4.3]
+    return t, heel_h, toe_h, prog, hs, to
+
+
+def test_foot_contacts_events_within_one_frame():
+    t, hh, th, prog, hs_true, to_true = synthetic_walk(0.2)
+    for refine in ("velocity", "none"):
+        cs = gc.foot_contacts(t, hh, th, prog, prog, "L", refine=refine)
+        hs = np.array([c.heel_strike for c in cs if np.isfinite(c.heel_strike)])
+        to = np.array([c.toe_off for c in cs if np.isfinite(c.toe_off)])
+        assert len(hs) == len(hs_true)
+        np.testing.assert_allclose(hs, hs_true, atol=1 / 30)
+        assert len(to) >= len(to_true) - 1
+        for x in to:
+            assert np.min(np.abs(np.array(to_true) - x)) <= 1 / 30
+
+
+def test_spatiotemporal_from_synthetic_walk():
+    period, stride = 1.1, 1200.0
+    contacts = {}
+    for side, off in (("L", 0.2), ("R", 0.75)):
+        t, hh, th, prog, _, _ = synthetic_walk(off, stride, period)
+        prog = prog + (0.0 if side == "L" else stride / 2)
+        contacts[side] = gc.foot_contacts(t, hh, th, prog, prog, side)
+    st = gc.spatiotemporal(contacts, direction=1.0)
+    for side in "LR":
+        np.testing.assert_allclose(st[side]["stride_length_mm"], stride, rtol=0.01)
+        np.testing.assert_allclose(st[side]["stance_s"], 0.62 * period, atol=0.04)
+        np.testing.assert_allclose(st[side]["swing_s"], 0.38 * period, atol=0.04)
+        assert st[side]["step_length_mm"]
+    np.testing.assert_allclose(st["L"]["step_length_mm"], stride / 2, rtol=0.02)
+    assert st["cadence_steps_per_min"] == pytest.approx(120 / period, rel=0.02)
+    assert st["speed_m_s"] == pytest.approx(stride / period / 1000, rel=0.02)
+    ev = gc.events_from_contacts(contacts["L"])
+    assert {e["kind"] for e in ev} == {"heel_strike", "toe_off"}
+    assert [e["time_s"] for e in ev] == sorted(e["time_s"] for e in ev)
+
+
+def test_spatiotemporal_literal_contacts():
+    c = gc.Contact
+    contacts = {
+        "L": [c("L", 0.0, 0.3, 0.6, 0.0, 0.0, 0.3), c("L", 1.0, 1.3, 1.6, 1000.0, 1.0, 1.3)],
+        "R": [c("R", 0.5, 0.8, 1.1, 500.0, 0.5, 0.8)],
+    }
+    st = gc.spatiotemporal(contacts)
+    assert st["L"]["stride_length_mm"] == [1000.0]
+    assert st["L"]["step_length_mm"] == [500.0]
+    assert st["R"]["step_length_mm"] == [500.0]
+    assert st["L"]["stance_s"] == [0.6, 0.6]
+    assert st["L"]["swing_s"] == [0.4]
+    assert st["cadence_steps_per_min"] == pytest.approx(120.0)
+    assert st["speed_m_s"] == pytest.approx(1.0)
+
+
+def test_split_passes_forth_and_back():
+    t = np.arange(0, 8, 1 / 30)
+    prog = np.where(t < 4, 1000 * t, 4000 - 1000 * (t - 4))
+    prog[(t > 3.6) & (t < 4.4)] = 3700  # turning on the spot
+    passes = gc.split_passes(t, prog)
+    assert [p.direction for p in passes] == [1, -1]
+    assert t[passes[0].stop - 1] < 3.9 and t[passes[1].start] > 4.1
+    assert gc.split_passes(t, np.full_like(t, NAN)) == []

@@ -1,0 +1,154 @@
+"""Simulator rendering: camera round trip, marker blobs, depth noise, occlusion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gaitflow.sim.config import SimConfig
+from gaitflow.sim.render import SAT, FramePose, Renderer, axial_sigma_mm
+from gaitflow.sim.truth import visibility
+
+
+@pytest.fixture(scope="module")
+def flat_renderer() -> Renderer:
+    # Fronto-parallel wall at Z = 2.5 m: the camera looks straight at it.
+    cfg = SimConfig(
+        tilt_deg=0.0,
+        pan_deg=0.0,
+        roll_deg=0.0,
+        walk_distance_mm=1000.0,
+        back_wall_mm=1500.0,
+        stray_reflectors=False,
+    )
+    return Renderer(cfg)
+
+
+def _pose(centre_world: np.ndarray, blur: int = 1) -> FramePose:
+    sph = np.repeat(np.asarray(centre_world, float)[None, None], blur, axis=0)
+    e = np.zeros((0, 3))
+    return FramePose(sph, e, e, np.zeros(0), np.zeros(0))
+
+
+def test_projection_round_trip_within_0_01_px(flat_renderer: Renderer) -> None:
+    r = Renderer(SimConfig())  # default pose: tilted, panned, rolled
+    cam = r.cam
+    rng = np.random.default_rng(3)
+    world = np.c_[rng.uniform(-1800, 1800, 200), rng.uniform(1500, 4000, 200), rng.uniform(0, 2000, 200)]
+    pc = r.to_cam(world)
+    uv = cam.project(pc)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= 511) & (uv[:, 1] >= 0) & (uv[:, 1] <= 423)
+    assert inside.sum() > 100
+    xy = cam.undistort(uv[inside])
+    back = np.c_[cam.fx * xy[:, 0] + cam.cx, cam.fy * xy[:, 1] + cam.cy]
+    want = np.c_[
+        cam.fx * pc[inside, 0] / pc[inside, 2] + cam.cx,
+        cam.fy * pc[inside, 1] / pc[inside, 2] + cam.cy,
+    ]
+    assert np.abs(back - want).max() < 0.01
+    # The renderer's per-pixel rays land back on their own pixel centres, corners included.
+    for v, u in [(0, 0), (0, 511), (423, 0), (423, 511), (212, 256), (100, 400)]:
+        p = 2500.0 * np.array([r.rx[v, u], r.ry[v, u], 1.0])
+        assert np.abs(cam.project(p[None])[0] - [u, v]).max() < 0.01
+
+
+def test_marker_is_saturated_blob_over_depth_hole(flat_renderer: Renderer) -> None:
+    r = flat_renderer
+    cfg = r.cfg
+    # Sphere centre 2.5 m in front of the camera, slightly off a pixel centre.
+    c_cam = np.array([31.0, -17.0, 2500.0])
+    c_world = c_cam @ r.R + r.C
+    out = r.render(_pose(c_world), np.random.default_rng(0))
+    sat = out.ir == SAT
+    hole = out.depth == 0
+    expected_d = r.cam.fx * cfg.marker_diameter_mm / 2500.0  # 3.66 px
+    d_sat = 2 * np.sqrt(sat.sum() / np.pi)
+    assert abs(d_sat - expected_d) < 0.75, (d_sat, expected_d)
+    # The depth hole has the same footprint as the saturated blob.
+    inter = (sat & hole).sum()
+    union = (sat | hole).sum()
+    assert inter / union >= 0.8
+    # Partial-pixel edges: pixels next to the blob are brighter than the wall but not
+    # saturated.
+    uv = r.cam.project(c_cam[None])[0]
+    v, u = int(round(uv[1])), int(round(uv[0]))
+    ring = out.ir[v - 4 : v + 5, u - 4 : u + 5].astype(float)
+    wall = np.median(out.ir[v - 30 : v - 20, u - 30 : u - 20])
+    partial = (ring > wall + 8 * cfg.ir_read_noise) & (ring < SAT)
+    assert partial.sum() >= 3
+    assert out.in_view[0] and out.seen[0] == pytest.approx(1.0)
+
+
+def test_motion_blur_streaks_fast_marker(flat_renderer: Renderer) -> None:
+    r = flat_renderer
+    c0 = np.array([0.0, 0.0, 2500.0])
+    # 4 m/s across the image during a 12 ms exposure = 48 mm = ~7 px of travel.
+    path = np.stack([c0 + [dx, 0, 0] for dx in np.linspace(-24, 24, 8)])
+    still = r.render(_pose(c0 @ r.R + r.C), np.random.default_rng(1))
+    sph = (path @ r.R + r.C)[:, None, :]
+    e = np.zeros((0, 3))
+    moving = r.render(FramePose(sph, e, e, np.zeros(0), np.zeros(0)), np.random.default_rng(1))
+    bright_still = (still.ir > 20000).sum()
+    bright_moving = (moving.ir > 20000).sum()
+    assert bright_moving > 1.5 * bright_still
+    # The streak runs along the motion (image x): about 7 px longer than the still blob.
+    def extent(img: np.ndarray, axis: int) -> int:
+        idx = np.flatnonzero((img > 20000).any(axis=axis))
+        return int(idx[-1] - idx[0]) + 1
+
+    assert extent(moving.ir, 0) - extent(still.ir, 0) >= 5
+    assert extent(moving.ir, 1) - extent(still.ir, 1) <= 1
+
+
+def test_depth_noise_matches_fankhauser_within_20_percent(flat_renderer: Renderer) -> None:
+    r = flat_renderer
+    rng = np.random.default_rng(5)
+    frames = np.stack([r.render(None, rng).depth for _ in range(40)]).astype(float)
+    v, u = int(r.cam.cy), int(r.cam.cx)
+    patch = frames[:, v - 15 : v + 15, u - 15 : u + 15]
+    assert (patch > 0).all()
+    assert abs(patch.mean() - 2500.0) < 2.0
+    measured = patch.std(axis=0, ddof=1).mean()
+    model = float(axial_sigma_mm(2500.0, 0.0))
+    assert model == pytest.approx(2.125, abs=1e-9)
+    assert abs(measured / model - 1) < 0.2, (measured, model)
+    # Grazing floor: noise grows with incidence as the model says.
+    theta = np.arccos(np.clip(r.bg_cos, 0, 1))
+    z = r.bg_z
+    sel = (np.abs(np.degrees(theta) - 70) < 1.5) & (z < 2200) & (z > 1200)
+    sel &= (frames > 0).all(axis=0)
+    assert sel.sum() > 200
+    meas = frames[:, sel].std(axis=0, ddof=1)
+    pred = axial_sigma_mm(z[sel], theta[sel])
+    ratio = np.sqrt(np.mean(meas**2) / np.mean(pred**2 + 1 / 12))
+    assert abs(ratio - 1) < 0.2, ratio
+    assert np.mean(pred) > 1.5 * model
+
+
+def test_marker_behind_arm_is_dark_and_flagged_occluded(flat_renderer: Renderer) -> None:
+    r = flat_renderer
+    c_cam = np.array([0.0, 0.0, 2300.0])
+    # An arm (capsule, radius 45 mm) hanging 150 mm in front of the marker.
+    a_cam = np.array([0.0, -300.0, 2150.0])
+    b_cam = np.array([0.0, 300.0, 2150.0])
+    sph = (c_cam @ r.R + r.C)[None, None]
+    pose = FramePose(
+        sph,
+        (a_cam @ r.R + r.C)[None],
+        (b_cam @ r.R + r.C)[None],
+        np.array([45.0]),
+        np.array([0.4]),
+    )
+    out = r.render(pose, np.random.default_rng(2))
+    uv = r.cam.project(c_cam[None])[0]
+    v, u = int(round(uv[1])), int(round(uv[0]))
+    assert out.ir[v - 6 : v + 7, u - 6 : u + 7].max() < 20000
+    # The arm itself is there in depth.
+    assert abs(float(np.median(out.depth[v - 3 : v + 4, u - 3 : u + 4])) - 2105) < 20
+    visible, occluded = visibility(out.seen, out.in_view)
+    assert occluded[0] and not visible[0]
+    # Control: without the arm the same marker is visible and saturated.
+    free = r.render(_pose(c_cam @ r.R + r.C), np.random.default_rng(2))
+    visible, occluded = visibility(free.seen, free.in_view)
+    assert visible[0] and not occluded[0]
+    assert free.ir[v - 6 : v + 7, u - 6 : u + 7].max() == SAT

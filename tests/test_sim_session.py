@@ -1,0 +1,195 @@
+"""Simulated sessions: API, determinism, protocol, ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from gaitflow.camera import Camera
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+from gaitflow.schemas._codec import decode
+from gaitflow.schemas.raw import RawFrame
+from gaitflow.schemas.truth import GroundTruth
+from gaitflow.sim import list_trials
+from gaitflow.sim.body import build_body, knee_flexion, load_trial
+from gaitflow.sim.config import SimConfig
+from gaitflow.sim.render import SAT
+from gaitflow.sim.session import simulate_session
+
+TRIAL = "btk_PiG_Motion-FlatFoot-Full"
+
+
+@pytest.fixture(scope="module")
+def ses():
+    return simulate_session(TRIAL, seed=7, config=SimConfig.quick())
+
+
+def test_bundled_trials_and_attribution() -> None:
+    names = list_trials()
+    assert len(names) >= 4
+    assert "btk_c3dorg_sample04_Matt" in names
+    for name in names:
+        tr = load_trial(name)
+        assert tr.meta.get("licence") and tr.meta.get("source")
+        assert len(tr.events) >= 4
+
+
+def test_api_and_camera_json(ses) -> None:
+    assert list(ses.recordings)[:3] == ["calibration", "static", "walk-01"]
+    cam = Camera.from_json(ses.camera_json)
+    assert cam == ses.camera
+    assert ses.camera_json["marker_diameter_mm"] == 25
+    assert ses.camera_json["calibration_markers"] == 4
+    assert ses.camera_json["subject"] == {"id": "S01"}
+    json.dumps(ses.camera_json)
+
+
+def test_frames_are_deterministic_for_a_seed(ses) -> None:
+    other = simulate_session(TRIAL, seed=7, config=SimConfig.quick())
+    third = simulate_session(TRIAL, seed=8, config=SimConfig.quick())
+    for k in (0, 40):
+        a, ga = ses.recordings["walk-01"].frame(k)
+        b, gb = other.recordings["walk-01"].frame(k)
+        c, _ = third.recordings["walk-01"].frame(k)
+        assert a.ir.tobytes() == b.ir.tobytes() and a.depth.tobytes() == b.depth.tobytes()
+        assert ga.encode(publish_ns=0) == gb.encode(publish_ns=0)
+        assert a.ir.tobytes() != c.ir.tobytes()
+
+
+def test_timestamps_jitter_and_drops() -> None:
+    s = simulate_session(TRIAL, seed=1, config=SimConfig.quick(drop_prob=0.1))
+    rec = s.recordings["walk-01"]
+    idx, t = rec.times.index, rec.times.time_s
+    assert idx[0] == 0 and np.all(np.diff(idx) >= 1) and np.any(np.diff(idx) > 1)
+    dt = np.diff(t) / np.diff(idx)
+    assert np.all(np.diff(t) > 0)
+    assert abs(np.median(dt) - 1 / 30) < 1e-3 and dt.std() > 1e-5
+    raw, _ = rec.frame(len(rec) - 1, last=True)
+    assert raw.header.last and raw.header.trial == "walk-01"
+
+
+def test_messages_round_trip(ses) -> None:
+    raw, gt = ses.recordings["walk-01"].frame(30)
+    assert raw.ir.dtype == np.uint16 and raw.ir.shape == (424, 512)
+    r2 = decode(RawFrame, raw.encode())
+    g2 = decode(GroundTruth, gt.encode())
+    assert np.array_equal(r2.depth, raw.depth)
+    assert g2.header.stream if hasattr(g2.header, "stream") else g2.header.schema == "truth"
+    np.testing.assert_array_equal(g2.visible, gt.visible)
+    assert g2.header.frame == raw.header.frame
+
+
+def test_walk_ground_truth_matches_image(ses) -> None:
+    """Visible markers are saturated at their pixel; both sides face the camera once."""
+    rec = ses.recordings["walk-01"]
+    facing = {"out": set(), "back": set()}
+    n_vis = 0
+    for k in range(0, len(rec), 6):
+        raw, gt = rec.frame(k)
+        for j in np.flatnonzero(gt.visible):
+            u, v = np.rint(gt.pixel[j]).astype(int)
+            assert raw.ir[max(v - 1, 0) : v + 2, max(u - 1, 0) : u + 2].max() == SAT
+            n_vis += 1
+        if gt.pass_name in facing:
+            facing[gt.pass_name] |= {MARKER_NAMES[j][0] for j in np.flatnonzero(gt.visible)
+                                     if MARKER_NAMES[j][2:] in ("KNE", "ANK", "TIB")}
+        # Z of a visible marker agrees with its pixel through the camera model.
+        ok = np.isfinite(gt.position).all(axis=1)
+        uv = ses.camera.project(gt.position[ok])
+        np.testing.assert_allclose(uv, gt.pixel[ok], atol=1e-9)
+    assert n_vis > 100
+    # Outward pass shows the right side's knee/ankle/tibia, the return the left side's.
+    assert "R" in facing["out"] and "L" in facing["back"]
+
+
+def test_arm_hides_pelvis_markers_sometimes(ses) -> None:
+    rec = ses.recordings["walk-01"]
+    occl = np.zeros(20, dtype=int)
+    vis = np.zeros(20, dtype=int)
+    for k in range(0, len(rec), 3):
+        raw, gt = rec.frame(k)
+        occl += gt.occluded
+        vis += gt.visible
+        for j in np.flatnonzero(gt.occluded):
+            u, v = np.rint(gt.pixel[j]).astype(int)
+            if not (0 <= u < 512 and 0 <= v < 424):
+                continue
+            # No other visible marker within 8 px: the occluded one must be dark.
+            others = [
+                i for i in np.flatnonzero(gt.visible)
+                if np.hypot(*(gt.pixel[i] - gt.pixel[j])) < 8
+            ]
+            if not others:
+                # At most a sliver of its disc shows: most of the footprint is not saturated.
+                rad = ses.camera.fx * 12.5 / gt.position[j, 2]
+                vv, uu = np.mgrid[0:424, 0:512]
+                disc = np.hypot(uu - gt.pixel[j, 0], vv - gt.pixel[j, 1]) <= rad
+                assert (raw.ir[disc] == SAT).mean() < 0.75
+                if gt.visible_fraction[j] == 0.0:
+                    assert (raw.ir[disc] == SAT).sum() == 0
+    near_hip = occl[MARKER_INDEX["R_HIP"]] + occl[MARKER_INDEX["R_THI"]]
+    assert near_hip > 0  # the swinging right arm passes in front of them
+    assert vis[MARKER_INDEX["R_HIP"]] > 0  # ... but not all the time
+
+
+def test_static_pose_shows_all_near_side_markers(ses) -> None:
+    raw, gt = ses.recordings["static"].frame(3)
+    near = [MARKER_INDEX[f"R_{s}"] for s in ("SHO", "ASI", "HIP", "THI", "KNE", "TIB", "ANK",
+                                              "HEE", "TOE")]
+    assert gt.visible[near].all()
+    assert gt.pass_name == ""
+
+
+def test_calibration_markers_appear_one_at_a_time(ses) -> None:
+    rec = ses.recordings["calibration"]
+    summ = ses.truth_summary("calibration")
+    pts = np.array(summ["calibration_markers_cam"])
+    assert pts.shape == (4, 3)
+    plane = np.array(summ["floor_plane_cam"])
+    # Marker centres sit one radius above the floor plane (normal points up).
+    np.testing.assert_allclose(pts @ plane[:3] + plane[3], 12.5, atol=1e-6)
+    counts = []
+    for k in range(0, len(rec), 4):
+        raw, _ = rec.frame(k)
+        px = np.array(summ["calibration_markers_px"])
+        n = 0
+        for u, v in np.rint(px).astype(int):
+            n += raw.ir[v - 1 : v + 2, u - 1 : u + 2].max() == SAT
+        counts.append(n)
+    assert counts[0] == 0 and counts[-1] == 4
+    assert np.all(np.diff(counts) >= 0) and set(counts) == {0, 1, 2, 3, 4}
+
+
+def test_knee_flexion_tracks_plug_in_gait() -> None:
+    tr = load_trial(TRIAL)
+    body = build_body(tr, 12.5)
+    sim = knee_flexion(body.markers)
+    ref = tr.knee_ref
+    ok = np.isfinite(ref).all(axis=1)
+    for k in range(2):
+        r = np.corrcoef(sim[ok, k], ref[ok, k])[0, 1]
+        assert r > 0.9
+        assert np.sqrt(np.mean((sim[ok, k] - ref[ok, k]) ** 2)) < 12.0
+
+
+def test_spatiotemporal_parameters_plausible(ses) -> None:
+    summ = ses.truth_summary("walk-01")
+    ev = summ["events"]
+    assert {e["pass"] for e in ev} == {"out", "back"}
+    st = summ["spatiotemporal"]
+    speed = st["mean"]["speed_m_s"]
+    assert abs(speed - 1.158) / 1.158 < 0.15  # index.csv mean speed of this trial
+    for side in ("L", "R"):
+        m = st["mean"][side]
+        assert 1000 < m["stride_length_mm"] < 1700
+        assert 0.9 * m["stride_length_mm"] / 2 < m["step_length_mm"] < 1.1 * m["stride_length_mm"] / 2 + 60
+        assert 55 < m["stance_pct"] < 70
+    # Events reach the per-frame messages.
+    rec = ses.recordings["walk-01"]
+    t_ev = ev[2]["time_s"]
+    k = int(np.argmin(np.abs(rec.times.time_s - t_ev)))
+    _, gt = rec.frame(k)
+    if abs(rec.times.time_s[k] - t_ev) < 0.5 / 30:
+        assert [ev[2]["side"], ev[2]["kind"]] in [e[:2] for e in gt.events]
