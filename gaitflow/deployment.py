@@ -50,6 +50,10 @@ HEADER = (
     "# fails while the committed files are stale).\n"
 )
 ROLE_FILES = ("all-in-one", "edge", "server")
+# Zenoh's client reconnect schedule (``connect/retry``). Its default backs off to several
+# seconds between attempts, so after a router restart stages could stay away longer than
+# the 5 s the deployment promises; retry every 0.25-1 s instead.
+RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 # Streams that never leave the edge: simulator ground truth is for evaluation only.
 EDGE_ONLY_STREAMS = ("truth",)
 
@@ -144,6 +148,7 @@ def _bus(connect: str, site: str, tls: Mapping[str, Any] | None = None) -> dict[
         "listen": [],
         "multicast_scouting": False,
         "site": site,
+        "extra": {"connect/retry": dict(RECONNECT)},
     }
     if tls:
         doc["tls"] = dict(tls)

@@ -469,6 +469,7 @@ def foot_contacts(
     hs_speed_frac: float = 0.1,
     to_speed_frac: float = 0.3,
     min_contact_s: float = 0.15,
+    rise_frac: float = 0.05,
 ) -> list[Contact]:
     """Stances of one foot from Alg. 6 on its heel and toe heights.
 
@@ -498,6 +499,8 @@ def foot_contacts(
         fractions of the foot's swing speed (90th percentile of its speed).
     min_contact_s : a heel strike whose flat range runs into the end of the data (the foot
         leaves the view) must be followed by at least this much observed contact.
+    rise_frac : heel rise = the heel above its lowest point in the range by this fraction
+        of its normalised height range (used by the phases only).
 
     Returns
     -------
@@ -536,7 +539,15 @@ def foot_contacts(
             # seen for too short a time before the data ends (leaving the view): no event
             hs_i = -1
         hs = float(t[hs_i]) if hs_i >= 0 else float("nan")
-        rise = float(t[r.right]) if r.right_locked else float("nan")
+        # heel rise: the heel leaves its lowest level by rise_frac of its swing height (the
+        # locked end of the range lies higher up the wall: it brackets, it does not time)
+        rise = float("nan")
+        if r.right_locked and np.isfinite(hr.hi - hr.lo):
+            seg = heel_h[r.left : r.right + 1]
+            if np.isfinite(seg).any():
+                k0 = int(np.nanargmin(seg))
+                above = np.flatnonzero(seg[k0:] > seg[k0] + rise_frac * (hr.hi - hr.lo))
+                rise = float(t[r.left + k0 + above[0]]) if above.size else float(t[r.right])
         next_left = hranges[i + 1].left if i + 1 < len(hranges) else n
         to = float("nan")
         for q in tr.ranges:
@@ -759,7 +770,8 @@ def gait_phases(
     the heel's flat range); terminal stance until contralateral heel strike; pre-swing until
     ipsilateral toe off; initial swing until the feet are adjacent (the swinging heel passes
     the other heel along the walking direction); mid swing until the shank is vertical
-    (``shank_tilt`` crosses zero); terminal swing until the next heel strike.
+    (``shank_tilt``, positive while the knee is ahead of the ankle, falls to zero after the
+    feet are adjacent); terminal swing until the next heel strike.
 
     Parameters
     ----------
@@ -794,7 +806,8 @@ def gait_phases(
             rel = heel_prog[side] - heel_prog[other]
             adj = np.flatnonzero(sw & (rel >= 0))
             tilt = shank_tilt[side]
-            vert = np.flatnonzero(sw & (tilt >= 0))
+            # early swing: knee ahead of the ankle; the shank is vertical when that ends
+            vert = np.flatnonzero(sw & (tilt <= 0))
             if adj.size == 0 or vert.size == 0:
                 continue
             feet_adjacent = float(t[adj[0]])

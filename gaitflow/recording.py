@@ -443,11 +443,17 @@ class McapWriter:
 
 @dataclass
 class RecorderStats:
-    """Counts of a :class:`Recorder`: received = accepted into the queue."""
+    """Counts of a :class:`Recorder`.
+
+    ``received``: accepted into the queue (each is written or counted in ``write_errors``);
+    ``dropped``: refused because the queue was full; ``late``: arrived after ``close``
+    began (a callback racing the shutdown), not recorded.
+    """
 
     received: int = 0
     written: int = 0
     dropped: int = 0
+    late: int = 0
     malformed: int = 0
     write_errors: int = 0
     queue_peak_bytes: int = 0
@@ -455,7 +461,8 @@ class RecorderStats:
     def line(self) -> str:
         return (
             f"received {self.received}, written {self.written}, dropped {self.dropped}, "
-            f"malformed {self.malformed}, write errors {self.write_errors}"
+            f"malformed {self.malformed}, write errors {self.write_errors}, "
+            f"late {self.late}"
         )
 
 
@@ -506,6 +513,9 @@ class Recorder:
         """Queue one payload (call from the bus callback). False when dropped."""
         n = len(payload)
         with self._lock:
+            if self._closed:
+                self.stats.late += 1
+                return False
             if not self._accepting or self._queued_bytes + n > self.max_queue_bytes:
                 self.stats.dropped += 1
                 return False
@@ -842,6 +852,51 @@ class McapReader:
             if want is not None and ci.stream not in want:
                 continue
             yield RecordedMessage(ch.topic, rec.data, rec.log_time, rec.publish_time)
+
+
+def count_hint(path: str | Path, streams: Iterable[str] | None = None) -> int | None:
+    """Message count from a complete file's summary (None if there is none), for progress.
+
+    Reads only the footer and the summary section, so it is cheap; a truncated file has
+    no summary and gives None (the reader then finds out what is there).
+    """
+    want = set(streams) if streams else None
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        tail = _REC_HDR.size + 20 + len(MAGIC)
+        if size < len(MAGIC) + tail:
+            return None
+        f.seek(size - tail)
+        end = f.read(tail)
+        opcode, length = _REC_HDR.unpack_from(end)
+        if end[-len(MAGIC) :] != MAGIC or opcode != Opcode.FOOTER or length != 20:
+            return None
+        summary_start, offsets_start, _crc = struct.unpack_from("<QQI", end, _REC_HDR.size)
+        summary_end = offsets_start or size - tail
+        if not 0 < summary_start <= summary_end <= size - tail:
+            return None
+        f.seek(summary_start)
+        summary = f.read(summary_end - summary_start)
+    stats, streams_of = None, {}
+    pos = 0
+    while pos + _REC_HDR.size <= len(summary):
+        opcode, length = _REC_HDR.unpack_from(summary, pos)
+        body = summary[pos + _REC_HDR.size : pos + _REC_HDR.size + length]
+        pos += _REC_HDR.size + length
+        try:
+            if opcode == Opcode.STATISTICS:
+                stats = Statistics.read(ReadDataStream(io.BytesIO(body)))
+            elif opcode == Opcode.CHANNEL:
+                ch = Channel.read(ReadDataStream(io.BytesIO(body)))
+                streams_of[ch.id] = ch.metadata.get("stream", stream_of(ch.topic))
+        except (McapError, struct.error, UnicodeDecodeError, ValueError):
+            return None  # a damaged summary is only a missing hint; the scan reports damage
+    if stats is None:
+        return None
+    if want is None:
+        return int(stats.message_count)
+    counts = stats.channel_message_counts
+    return sum(int(n) for cid, n in counts.items() if streams_of.get(cid) in want)
 
 
 def _read_record(opcode: int, body: bytes, length: int) -> Any:

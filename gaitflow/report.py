@@ -24,6 +24,7 @@ import argparse
 import csv
 import html
 import io
+import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -250,8 +251,10 @@ def _f(v: float, nd: int = 1, sd: float | None = None) -> str:
 CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;margin:24px auto;
 max-width:1060px;color:#222;line-height:1.4}
-h1{font-size:1.5em;margin-bottom:0}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ddd}
-.meta{color:#555;font-size:.9em}.warn{background:#fff4e0;border-left:4px solid #e69500;padding:6px 10px}
+h1{font-size:1.5em;margin-bottom:0}
+h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ddd}
+.meta{color:#555;font-size:.9em}
+.warn{background:#fff4e0;border-left:4px solid #e69500;padding:6px 10px}
 .note{background:#eef4fb;border-left:4px solid #1f5fa8;padding:6px 10px;font-size:.92em}
 table{border-collapse:collapse;font-size:.92em;margin:6px 0}
 td,th{border:1px solid #ccc;padding:4px 10px;text-align:right}th{background:#f3f3f3}
@@ -450,7 +453,7 @@ def build_normative(trials_dir: str | Path) -> dict[str, Any]:
             sel = d["event_sides"] == s
             fs = sorted(d["event_times"][sel & (d["event_kinds"] == "FS")])
             fo = d["event_times"][sel & (d["event_kinds"] == "FO")]
-            for a, b in zip(fs[:-1], fs[1:], strict=True):
+            for a, b in itertools.pairwise(fs):
                 v = np.interp(np.linspace(a, b, 101), t, k)
                 if not np.all(np.isfinite(v)):
                     continue

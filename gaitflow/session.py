@@ -51,10 +51,10 @@ FRAMES_HEADER = ("index", "timestamp_ns")
 PROTOCOL = ("calibration", "static")
 WALK_RE = re.compile(r"^walk-(\d+)$")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-# Kinect frames are dominated by sensor noise, which LZ77 matching cannot exploit: zlib level
-# 1 with Huffman-only coding (after PNG's own row filters) encodes ~1.7x faster than level 1
-# with zlib's default strategy and gives 4% smaller files on simulator frames; higher levels
-# cost time and gain nothing (docs/readme/session-io.md, `gaitflow bench session`).
+# Kinect frames are dominated by sensor noise, which LZ77 matching cannot exploit: Huffman-only
+# coding (after PNG's row filters) encodes simulator frames ~2x faster than OpenCV's default
+# (zlib level 3) and ~1.3x faster than level 1, with files 2-4% smaller; with Huffman-only
+# the zlib level makes no difference (docs/readme/session-io.md, `gaitflow bench session`).
 DEFAULT_PNG_COMPRESSION = 1
 DEFAULT_PNG_STRATEGY = "huffman"
 PNG_STRATEGIES = {

@@ -176,6 +176,20 @@ def _axis(plane: np.ndarray, start: np.ndarray | None, end: np.ndarray | None, p
     return u / np.linalg.norm(u), np.zeros(3)
 
 
+def _near_side(frames: Sequence[FrameRec]) -> str:
+    """The side facing the camera from geometry, when the labeller did not say: the side
+    whose knee and ankle markers are nearer the camera centre (median distance)."""
+    dist = {}
+    for s in "LR":
+        idx = [MARKER_INDEX[f"{s}_KNE"], MARKER_INDEX[f"{s}_ANK"]]
+        d = np.array([np.linalg.norm(f.position[idx], axis=1) for f in frames]).ravel()
+        d = d[np.isfinite(d)]
+        dist[s] = float(np.median(d)) if d.size else float("nan")
+    if not all(np.isfinite(v) for v in dist.values()):
+        return ""
+    return "L" if dist["L"] < dist["R"] else "R"
+
+
 def _nanmedian_rows(x: np.ndarray) -> np.ndarray:
     """Median of each row ignoring NaN; NaN for an all-NaN row (without a warning)."""
     out = np.full(x.shape[0], np.nan)
@@ -276,7 +290,7 @@ def analyse(
                 f for f, tt in zip(frames, t, strict=True) if tq[ps.start] <= tt <= tq[ps.stop - 1]
             ]
             sides = [f.near_side for f in in_pass if f.near_side]
-            near = max(set(sides), key=sides.count) if sides else ""
+            near = max(set(sides), key=sides.count) if sides else _near_side(in_pass)
             passes.append(
                 {
                     "direction": int(ps.direction),

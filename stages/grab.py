@@ -48,7 +48,7 @@ PARAMS = ParamSet(
     (
         Param("source", str, "sim", "", "where frames come from", choices=SOURCES),
         Param("path", str, "", "", "session folder (session) or .mcap file (mcap)"),
-        Param("trial", str, "", "", "sim: bundled walking trial (empty = simulator default)"),
+        Param("trial", str, "", "", "sim: bundled walking trial (empty = the first one bundled)"),
         Param("seed", int, 0, "", "sim: random seed (output is deterministic per seed)", low=0),
         Param("camera", str, "cam0", "", "camera id stamped on every message"),
         Param(
@@ -56,7 +56,7 @@ PARAMS = ParamSet(
             str,
             "",
             "",
-            "comma-separated recordings to play (empty = all, protocol order); "
+            "comma-separated recordings to play, in protocol order (empty = all); "
             "live sources: the trial name to stamp (default walk-01)",
         ),
         Param("loop", bool, False, "", "replay forever (capture times keep increasing)"),
@@ -173,7 +173,8 @@ class GrabSource:
                 raise InputError(
                     reader.root, f"no recording folder {missing[0]}/ (present: {present})"
                 )
-            names = wanted
+            # Protocol order whatever the order asked: walks need the static model first.
+            names = recording_order(wanted)
         else:
             # The whole protocol: later stages wait for the scene calibration and the
             # static model, so a session without them cannot be analysed.

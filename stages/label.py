@@ -69,7 +69,7 @@ PARAMS = ParamSet(
         Param(
             "max_missed",
             int,
-            10,
+            5,
             "frames",
             "frames the shoulder may be predicted without a detection before the track ends",
             0,
@@ -87,6 +87,23 @@ PARAMS = ParamSet(
         Param("flip_frames", int, 3, "frames", "frames against the direction before it flips", 1),
         Param("track_age", int, 3, "frames", "frames a marker track predicts after a miss", 0),
         Param("gate", float, 4.0, "sigma", "per-label acceptance gate", 1.0, 100.0),
+        Param(
+            "ambiguity",
+            float,
+            2.0,
+            "sigma^2",
+            "a label is dropped when another blob scores within this margin of the best",
+            0.0,
+            100.0,
+        ),
+        Param(
+            "turn_speed",
+            float,
+            120.0,
+            "mm/s",
+            "below this shoulder speed (after walking) the subject is turning: no labels",
+            0.0,
+        ),
         Param(
             "camera_height_mm",
             float,
@@ -109,46 +126,62 @@ MISS_COST = 9.0  # a missing label costs as much as a 3-sigma fit
 
 @dataclass(frozen=True)
 class Geometry:
-    """Site layout and distances from the subject model (template where unmeasured)."""
+    """Subject geometry for labelling: standing offsets and segment distances.
 
-    layout: np.ndarray  # (10, 3) [forward from pelvis centre, height, lateral], mm
-    dist: np.ndarray  # (10, 10) near-side distances between sites, mm
+    ``offsets`` (2, 10, 3): per side (0 = near, 1 = far) and site, the standing position
+    relative to the near shoulder: forward along the walking direction, e (away from the
+    camera), height above the floor; mm. Measured in the static pose where seen; otherwise
+    the scaled template (far side: the near offset moved back by twice the template's
+    lateral offset, at least 60 mm). ``dist`` (10, 10): near-side distances between sites.
+    """
+
+    offsets: np.ndarray
+    dist: np.ndarray
     sho_h: float
 
     @classmethod
     def from_model(cls, model: SubjectModel | None) -> Geometry:
         """Geometry of a subject model; the scaled template if there is none."""
-        layout = template_layout()
         sho_h = TEMPLATE_SHO_HEIGHT
         extra = dict(model.extra) if model is not None else {}
-        if "sho_height_mm" in extra and np.isfinite(extra["sho_height_mm"]):
-            sho_h = float(extra["sho_height_mm"])
-            layout = template_layout(sho_h / TEMPLATE_SHO_HEIGHT)
+        v = extra.get("sho_height_mm")
+        if isinstance(v, int | float) and np.isfinite(v) and v > 0:
+            sho_h = float(v)
+        tpl = template_layout(sho_h / TEMPLATE_SHO_HEIGHT)
         lay = extra.get("layout", {})
+        layout = tpl.copy()
         for j, s in enumerate(SITES):
             v = lay.get(s)
             if v is not None and len(v) == 3 and np.isfinite(v).all():
                 layout[j] = v
+        s0 = tpl[SITES.index("SHO")]
+        offsets = np.zeros((2, 10, 3))
+        for j in range(10):
+            q = tpl[j]
+            offsets[0, j] = (q[0] - s0[0], s0[2] - q[2], q[1])
+            offsets[1, j] = offsets[0, j] + (0.0, max(2 * q[2], 60.0), 0.0)
+        meas = extra.get("offsets_from_shoulder", {})
+        for k, side in enumerate(("near", "far")):
+            for j, s in enumerate(SITES):
+                v = meas.get(f"{side}_{s}")
+                if v is not None and len(v) == 3 and np.isfinite(v).all():
+                    offsets[k, j] = v
+                    if k == 0 and f"far_{s}" not in meas:
+                        offsets[1, j] = np.asarray(v) + (0.0, max(2 * tpl[j, 2], 60.0), 0.0)
         dist = np.linalg.norm(layout[:, None, :] - layout[None, :, :], axis=2)
         sd = extra.get("site_distances")
         if sd is not None:
             sd = np.asarray(sd, dtype=np.float64)
             if sd.shape == (10, 10):
                 dist = np.where(np.isfinite(sd) & (sd > 0), sd, dist)
-        return cls(layout, dist, sho_h)
+        return cls(offsets, dist, sho_h)
 
     def d(self, a: str, b: str) -> float:
         return float(self.dist[SITES.index(a), SITES.index(b)])
 
     def rel_sho(self, side: str, site: str) -> np.ndarray:
-        """Standing offset (forward, e, h) of a site from the near shoulder.
-
-        ``side`` is "near" or "far"; e grows away from the camera.
-        """
-        s = self.layout[SITES.index("SHO")]
-        q = self.layout[SITES.index(site)]
-        lat = -q[2] if side == "near" else q[2]
-        return np.array([q[0] - s[0], s[2] + lat, q[1]])
+        """Standing offset (forward, e, height) of a site from the near shoulder."""
+        return self.offsets[0 if side == "near" else 1, SITES.index(site)]
 
 
 # --- the shoulder Kalman filter ----------------------------------------------------------
@@ -191,6 +224,7 @@ class LabelState:
     sho_missed: int = 0
     direction: int = 0
     flip_count: int = 0
+    walked: bool = False
     last: np.ndarray | None = None
     vel: np.ndarray | None = None
     seen: np.ndarray | None = None
@@ -249,17 +283,35 @@ def _triangle_outside(a: np.ndarray, b: np.ndarray, c: np.ndarray, p: np.ndarray
 class _Frame:
     """Working data of one frame (not state)."""
 
-    q: np.ndarray  # (N, 3) floor coords of the blobs, forward-oriented: (f, e, h)
+    qm: np.ndarray  # (N, 3, 3) floor coords (f, e, h) of the blobs per cluster mode
     free: np.ndarray  # (N,) bool, blob not yet assigned
     assign: np.ndarray  # (20,) int blob per marker
     pred: np.ndarray  # (20, 3) prediction (f, e, h)
     sig: np.ndarray  # (20, 3) prediction sigma
     near: str
+    tracked: np.ndarray  # (20,) bool, prediction comes from a fresh track
+    ambiguity: float
+    age: np.ndarray  # (20,) frames since each marker was last labelled
+
+    def pos(self, i: int) -> np.ndarray:
+        """(N, 3) blob positions under marker ``i``'s cluster mode."""
+        return self.qm[:, MODE_OF[i]]
+
+
+# Mode each marker is matched under. The output keeps every marker's own cluster mode;
+# for matching, ASI and PSI use the normal mode: they sit on the front and back silhouette
+# of the pelvis, where the bottom mode's far layer is often the room behind the subject.
+MODE_OF = np.array(
+    [
+        0 if n[2:] in ("ASI", "PSI") else CLUSTER_MODES.index(cluster_mode(n))
+        for n in MARKER_NAMES
+    ]
+)
 
 
 def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
     """Squared-sigma distance of candidate blobs (K,) to marker ``idx``'s prediction."""
-    d = (fr.q[cand] - fr.pred[idx]) / fr.sig[idx]
+    d = (fr.pos(idx)[cand] - fr.pred[idx]) / fr.sig[idx]
     return (d**2).sum(axis=1)
 
 
@@ -267,6 +319,34 @@ def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np
     """Squared-sigma error of distances |pa - pb| (M, 3) against the model distance d0."""
     sig = (20.0 + 0.2 * d0) if loose else (10.0 + 0.1 * d0)
     return ((np.linalg.norm(pa - pb, axis=1) - d0) / sig) ** 2
+
+
+def _slots(fr: _Frame, idx: list[int], cand: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(M, r, 3) positions of tuples T (M, r) over ``cand`` (+ missing), per slot's mode."""
+    out = np.full((*T.shape, 3), np.nan)
+    for k, i in enumerate(idx):
+        P = np.vstack([fr.pos(i)[cand], np.full((1, 3), np.nan)])
+        out[:, k] = P[T[:, k]]
+    return out
+
+
+def _base_cost(fr: _Frame, idx: list[int], cand: np.ndarray, T: np.ndarray) -> np.ndarray:
+    U = np.vstack([np.append(_unary(fr, i, cand), MISS_COST) for i in idx])
+    return U[np.arange(len(idx)), T].sum(axis=1)
+
+
+def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float) -> list[bool]:
+    """Per slot of the best tuple ``m``: is every tuple giving the slot another blob clearly
+    worse (by ``margin``)? A label that could as well be another blob is left out."""
+    keep = []
+    for k in range(T.shape[1]):
+        if T[m, k] >= K:
+            keep.append(False)
+            continue
+        other = (T[:, k] != T[m, k]) & (T[:, k] < K)
+        alt = float(cost[other].min()) if other.any() else np.inf
+        keep.append(alt - float(cost[m]) >= margin)
+    return keep
 
 
 # --- the per-frame labelling ---------------------------------------------------------------
@@ -280,7 +360,8 @@ def label_frame(
     Parameters
     ----------
     st : the label state.
-    pos : (N, 3) camera-space blob positions (normal mode), mm; NaN rows are skipped.
+    pos : (N, 3, 3) camera-space blob positions per cluster mode (normal, top, bottom), mm;
+        blobs without a normal-mode position are skipped.
     frame_idx : the frame index (gaps = dropped frames).
     ff : the floor frame of the calibration.
     geo : the subject geometry.
@@ -293,47 +374,69 @@ def label_frame(
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
     dt = dt_frames / p["fps"]
-    floor = ff.to_floor(pos) if len(pos) else np.zeros((0, 3))
+    pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3, 3)
+    # A mode that found no layer falls back to the normal mode's position.
+    pos = np.where(np.isfinite(pos), pos, pos[:, :1, :])
+    fm = ff.to_floor(pos) if len(pos) else np.zeros((0, 3, 3))
+    floor = fm[:, 0]
     ok = np.isfinite(floor).all(axis=1)
     assign = np.full(20, -1)
     st = replace(st, frame=frame_idx, frames=st.frames + 1)
+    top = fm[:, CLUSTER_MODES.index("top")]
 
-    # Steps 1-3: the shoulder.
-    band = ok & (floor[:, 2] > 0.85 * H) & (floor[:, 2] < 1.15 * H)
+    # Steps 1-3: the shoulder (top mode).
+    band = ok & (top[:, 2] > 0.85 * H) & (top[:, 2] < 1.15 * H)
     sho_blob = -1
+    if st.sho_x is not None and dt_frames > 1:
+        # Frames that never arrived (dropped, or nobody in view) count as misses.
+        st = replace(st, sho_missed=st.sho_missed + dt_frames - 1)
+    if st.sho_x is not None and st.sho_missed > p["max_missed"]:
+        st = _reset_tracks(
+            replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
+        )
     if st.sho_x is not None:
         kf = _kf(st.sho_x, st.sho_cov, dt)
         kf.predict()
-        gate = p["sho_gate_mm"] * (1 + 0.5 * st.sho_missed)
+        # The gate widens with misses, at most to twice its size: a shoulder that shows up
+        # far from a coasting prediction is a new track (e.g. after a turn out of view).
+        gate = p["sho_gate_mm"] * min(2.0, 1 + 0.25 * st.sho_missed)
         cand = np.flatnonzero(band)
         if cand.size:
-            dist = np.hypot(floor[cand, 0] - kf.x[0], floor[cand, 1] - kf.x[1])
+            dist = np.hypot(top[cand, 0] - kf.x[0], top[cand, 1] - kf.x[1])
             j = int(np.argmin(dist))
             if dist[j] < gate:
                 sho_blob = int(cand[j])
-        if sho_blob >= 0:
-            kf.update(floor[sho_blob])
+        if sho_blob >= 0 and st.sho_missed >= 3:
+            # Back after a gap (out of view, turning): start afresh, the subject may have
+            # turned round.
+            st = _reset_tracks(
+                replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
+            )
+        elif sho_blob >= 0:
+            kf.update(top[sho_blob])
             st = replace(st, sho_x=kf.x.copy(), sho_cov=kf.P.copy(), sho_missed=0)
         elif st.sho_missed < p["max_missed"]:
             st = replace(st, sho_x=kf.x.copy(), sho_cov=kf.P.copy(), sho_missed=st.sho_missed + 1)
         else:
-            st = _reset_tracks(replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0))
+            st = _reset_tracks(
+                replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
+            )
     if st.sho_x is None:
-        sho_blob = _acquire_shoulder(floor, ok, band, H)
+        sho_blob = _acquire_shoulder(top, ok, band, H)
         if sho_blob < 0:
             return st, assign
-        x = np.concatenate([floor[sho_blob], np.zeros(3)])
+        x = np.concatenate([top[sho_blob], np.zeros(3)])
         P = np.diag([20.0**2] * 3 + [1500.0**2] * 3)
-        st = _reset_tracks(replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0))
+        st = _reset_tracks(
+            replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0)
+        )
 
     # Direction (with hysteresis) and near side.
     va = float(st.sho_x[3])
-    sho_a = float(st.sho_x[0])
     direction, flips = st.direction, st.flip_count
     if direction == 0:
         # First sight: walking toward the far end of the walkway from where it appears.
-        half = 0.5 * ff.length
-        direction = 1 if sho_a < half else -1
+        direction = 1 if float(st.sho_x[0]) < 0.5 * ff.length else -1
         if abs(va) > p["dir_speed"]:
             direction = 1 if va > 0 else -1
     elif abs(va) > p["dir_speed"] and np.sign(va) != direction:
@@ -341,30 +444,45 @@ def label_frame(
         if flips >= p["flip_frames"]:
             direction, flips = -direction, 0
             st = _reset_tracks(st)
+            # The return shows the other side: the shoulder now nearest the camera.
+            j = _nearest_shoulder(top, band, st.sho_x, H)
+            if j >= 0:
+                x = st.sho_x.copy()
+                x[:3] = top[j]
+                st = replace(st, sho_x=x)
+                sho_blob = j
+            else:
+                sho_blob = -1
     else:
         flips = 0
-    st = replace(st, direction=direction, flip_count=flips)
+    walked = st.walked or abs(va) > p["dir_speed"]
+    st = replace(st, direction=direction, flip_count=flips, walked=walked)
     near = "R" if direction > 0 else "L"
-
-    # Forward-oriented floor coords relative to nothing: f = direction * a.
-    q = floor.copy()
-    q[:, 0] *= direction
-    sho = np.array([direction * st.sho_x[0], st.sho_x[1], st.sho_x[2]])
     if sho_blob >= 0:
         assign[MARKER_INDEX[f"{near}_SHO"]] = sho_blob
-    pred, sig = _predictions(st, geo, sho, near, direction, frame_idx)
-    free = ok.copy()
-    if sho_blob >= 0:
-        free[sho_blob] = False
-    fr = _Frame(q, free, assign, pred, sig, near)
+    # Turning: slow along the line, backwards, or heading off the line (the near shoulder
+    # swings away from the camera as the body turns).
+    ve = float(st.sho_x[4])
+    turning = walked and (
+        abs(va) < p["turn_speed"] or np.sign(va) != direction or abs(ve) > 0.5 * abs(va)
+    )
+    if not turning:
+        qm = fm.copy()
+        qm[:, :, 0] *= direction
+        sho = np.array([direction * st.sho_x[0], st.sho_x[1], st.sho_x[2]])
+        pred, sig, tracked = _predictions(st, geo, sho, near, direction, frame_idx)
+        free = ok.copy()
+        if sho_blob >= 0:
+            free[sho_blob] = False
+        age = frame_idx - st.seen
+        fr = _Frame(qm, free, assign, pred, sig, near, tracked, p["ambiguity"], age)
+        _pelvis(fr, geo, sho, H, p["gate"])
+        _lower(fr, geo, sho, H, p["gate"])
 
-    _pelvis(fr, geo, sho, H, p["gate"])
-    _lower(fr, geo, sho, H, p["gate"])
-
-    # Track update (floor coords, un-oriented).
+    # Track update (floor coords under each marker's own mode, un-oriented).
     last, vel, seen = st.last.copy(), st.vel.copy(), st.seen.copy()
     for i in np.flatnonzero(assign >= 0):
-        cur = floor[assign[i]]
+        cur = fm[assign[i], MODE_OF[i]]
         age = frame_idx - seen[i]
         if 0 < age <= p["track_age"] + 1 and np.isfinite(last[i]).all():
             vel[i] = (cur - last[i]) / age
@@ -376,216 +494,269 @@ def label_frame(
     return st, assign
 
 
+def _nearest_shoulder(top: np.ndarray, band: np.ndarray, x: np.ndarray, H: float) -> int:
+    """The shoulder-height blob nearest the camera within reach of the shoulder track."""
+    cand = np.flatnonzero(band & (np.abs(top[:, 0] - x[0]) < 0.3 * H))
+    if cand.size == 0:
+        return -1
+    return int(cand[np.argmin(top[cand, 1])])
+
+
 def _acquire_shoulder(floor: np.ndarray, ok: np.ndarray, band: np.ndarray, H: float) -> int:
-    """The first shoulder: a shoulder-height blob with the most body markers below it."""
-    best, best_score = -1, 0.0
+    """The first shoulder: a shoulder-height blob with body markers below it.
+
+    Of the candidates with the most support, the one nearest the camera wins: the far
+    shoulder can peek over the near one.
+    """
     body = ok & (floor[:, 2] > 0.3 * H) & (floor[:, 2] < 0.8 * H)
+    cands = []
     for i in np.flatnonzero(band):
         near = body & (np.abs(floor[:, 0] - floor[i, 0]) < 0.3 * H)
         near &= np.abs(floor[:, 1] - floor[i, 1]) < 0.35 * H
         n = int(near.sum())
-        score = n + floor[i, 2] / (10 * H)
-        if n >= 2 and score > best_score:
-            best, best_score = int(i), score
-    return best
+        if n >= 2:
+            cands.append((n, -floor[i, 1], int(i)))
+    if not cands:
+        return -1
+    best = max(c[0] for c in cands)
+    return max(c for c in cands if c[0] >= best - 1)[2]
 
 
 def _predictions(
     st: LabelState, geo: Geometry, sho: np.ndarray, near: str, direction: int, frame_idx: int
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-marker prediction (f, e, h) and sigma (20, 3): track if fresh, else the model."""
     p = st.params
     H = geo.sho_h
     pred = np.full((20, 3), np.nan)
     sig = np.full((20, 3), np.inf)
+    tracked = np.zeros(20, bool)
     for side in ("near", "far"):
         for site in SITES:
             i = MARKER_INDEX[_name(side, site, near)]
             off = geo.rel_sho(side, site)
-            pred[i] = sho + off * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, off[2]])
-            if site in ("ASI", "PSI", "HIP", "SHO"):
-                sig[i] = (0.06 * H, 0.06 * H, 0.04 * H)
+            pred[i] = (sho[0] + off[0], sho[1] + off[1], off[2])
+            if site in ("ASI", "PSI"):
+                # The trunk leans while walking (the pelvis shifts along the walk relative
+                # to the shoulder); depth on the pelvis silhouette is poor.
+                sig[i] = (0.12 * H, 0.25 * H, 0.03 * H)
+            elif site in ("HIP", "SHO"):
+                sig[i] = (0.12 * H, 0.08 * H, 0.03 * H)
             else:
                 # Legs swing: along the walk only the rough reach of a stride is known.
-                sig[i] = (0.3 * H, 0.07 * H, 0.1 * H)
+                sig[i] = (0.3 * H, 0.08 * H, 0.1 * H)
             age = frame_idx - st.seen[i]
             if 0 < age <= p["track_age"] + 1 and np.isfinite(st.last[i]).all():
                 t = st.last[i] + st.vel[i] * age
                 pred[i] = (direction * t[0], t[1], t[2])
                 s = 30.0 + 20.0 * age
-                sig[i] = (s + 0.3 * abs(st.vel[i][0]), s, s)
-    return pred, sig
+                se = 0.25 * H if site in ("ASI", "PSI") else s
+                sig[i] = (s + 0.3 * abs(st.vel[i][0]), se, s)
+                tracked[i] = True
+    return pred, sig, tracked
 
 
 def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -> None:
-    """Steps 5-6: near PSI/HIP/ASI and far PSI/ASI, Hungarian then the order test."""
-    q = fr.q
+    """Steps 5-6: the pelvis as a rigid cluster (bottom-mode positions).
+
+    Every assignment of the pelvis-band blobs to near (PSI, HIP, ASI) and far ASI is scored
+    by the tracks (or the loose standing offsets from the shoulder: the trunk leans while
+    walking), the rigid distances among them, the hard order PSI < HIP < ASI along the
+    walking direction with HIP below PSI and ASI, and the far ASI deeper than the near one.
+    The far PSI sits ~60 mm behind the near one, closer than the depth error of a marker
+    on the silhouette: it is not labelled. Labels another blob would fit about as well
+    are left out.
+    """
+    qb = fr.qm[:, CLUSTER_MODES.index("bottom")]
     cand = np.flatnonzero(
         fr.free
-        & (q[:, 2] > 0.5 * H)
-        & (q[:, 2] < 0.8 * H)
-        & (np.abs(q[:, 0] - sho[0]) < 0.35 * H)
-        & (np.abs(q[:, 1] - sho[1]) < 0.4 * H)
+        & (qb[:, 2] > 0.5 * H)
+        & (qb[:, 2] < 0.85 * H)
+        & (np.abs(qb[:, 0] - sho[0]) < 0.35 * H)
+        & (np.abs(qb[:, 1] - sho[1]) < 0.45 * H)
     )
-    if cand.size == 0:
+    K = cand.size
+    if K == 0:
         return
-    idx = [MARKER_INDEX[_name(s, m, fr.near)] for s, m in PELVIS]
-    cost = np.stack([_unary(fr, i, cand) for i in idx])
-    big = 1e6
-    rows, cols = linear_sum_assignment(np.where(cost <= gate**2, cost, big))
-    got: dict[int, tuple[int, float]] = {}
-    for r, c in zip(rows, cols, strict=True):
-        if cost[r, c] <= gate**2:
-            got[idx[r]] = (int(cand[c]), float(cost[r, c]))
-
-    def f(name: str) -> float | None:
-        i = MARKER_INDEX[_name(*name.split(":"), fr.near)] if ":" in name else MARKER_INDEX[name]
-        return q[got[i][0], 0] if i in got else None
-
-    def drop_worse(a: int, b: int) -> None:
-        worst = a if got[a][1] >= got[b][1] else b
-        del got[worst]
-
-    order = [
-        (MARKER_INDEX[_name("near", "PSI", fr.near)], MARKER_INDEX[_name("near", "HIP", fr.near)]),
-        (MARKER_INDEX[_name("near", "HIP", fr.near)], MARKER_INDEX[_name("near", "ASI", fr.near)]),
-        (MARKER_INDEX[_name("near", "PSI", fr.near)], MARKER_INDEX[_name("near", "ASI", fr.near)]),
-        (MARKER_INDEX[_name("far", "PSI", fr.near)], MARKER_INDEX[_name("far", "ASI", fr.near)]),
-    ]
-    del f
-    for a, b in order:
-        if a in got and b in got and q[got[a][0], 0] >= q[got[b][0], 0]:
-            drop_worse(a, b)
-    for i, (blob, _) in got.items():
-        fr.assign[i] = blob
-        fr.free[blob] = False
+    near, far = fr.near, ("L" if fr.near == "R" else "R")
+    # The far PSI takes part so that, when seen, it absorbs its blob instead of letting
+    # another label take it; it is never published (see above).
+    names = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "ASI"), ("far", "PSI"))
+    idx = [MARKER_INDEX[_name(sd, st, near)] for sd, st in names]
+    # Near and far ASI differ mostly in depth, which the silhouette spoils: the far ASI
+    # (and PSI) only absorb their blobs, and a near label that could as well be the far
+    # one is dropped by the ambiguity test.
+    hidden = {MARKER_INDEX[f"{far}_PSI"], MARKER_INDEX[f"{far}_ASI"]}
+    if K > 7:
+        # Keep the 7 nearest the expected pelvis height.
+        hp = np.mean([geo.rel_sho("near", s)[2] for s in ("PSI", "HIP", "ASI")])
+        cand = cand[np.argsort(np.abs(qb[cand, 2] - hp))[:7]]
+        K = 7
+    T = _tuples(K, 5)
+    cost = _base_cost(fr, idx, cand, T)
+    pts = _slots(fr, idx, cand, T)
+    present = T < K
+    off = [geo.rel_sho(sd, st) for sd, st in names]
+    fh = [0, 2]  # sagittal (f, h): the depth of ASI and PSI is not trusted
+    for a, b in ((0, 1), (1, 2), (0, 2), (2, 3), (0, 4), (3, 4)):
+        d0 = float(np.linalg.norm(off[a][fh] - off[b][fh]))
+        both = present[:, a] & present[:, b]
+        cost[both] += _rigid(pts[both, a][:, fh], pts[both, b][:, fh], d0)
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        both = present[:, a] & present[:, b]
+        cost[both & ~(pts[:, a, 0] < pts[:, b, 0])] = np.inf
+    for a in (0, 2):
+        both = present[:, a] & present[:, 1]
+        cost[both & ~(pts[:, 1, 2] < pts[:, a, 2])] = np.inf
+    # Near and far ASI both seen: the near one is the nearer (a relative test survives the
+    # silhouette's depth bias better than the absolute depth does).
+    both = present[:, 2] & present[:, 3]
+    cost[both & ~(pts[:, 2, 1] < pts[:, 3, 1])] = np.inf
+    both = present[:, 4] & present[:, 3]
+    cost[both & ~(pts[:, 4, 0] < pts[:, 3, 0])] = np.inf
+    m = int(np.argmin(cost))
+    if not np.isfinite(cost[m]):
+        return
+    keep = _unambiguous(cost, T, m, K, fr.ambiguity)
+    for k, i in enumerate(idx):
+        if T[m, k] < K and i in hidden:
+            fr.free[cand[T[m, k]]] = False
+        elif keep[k] and _unary(fr, i, cand[T[m, k] : T[m, k] + 1])[0] <= 3 * gate**2:
+            fr.assign[i] = int(cand[T[m, k]])
+            fr.free[cand[T[m, k]]] = False
 
 
 def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -> None:
     """Steps 7-10: near foot (triangle model), far heel and toe, then THI and KNE."""
-    q = fr.q
+    q = fr.qm[:, 0]
     near, far = fr.near, ("L" if fr.near == "R" else "R")
     hip_i = MARKER_INDEX[f"{near}_HIP"]
-    hip = q[fr.assign[hip_i]] if fr.assign[hip_i] >= 0 else None
-    cand = np.flatnonzero(
+    hip = fr.pos(hip_i)[fr.assign[hip_i]] if fr.assign[hip_i] >= 0 else None
+    body = (
         fr.free
-        & (q[:, 2] < 0.56 * H)
         & (q[:, 2] > -0.05 * H)
         & (np.abs(q[:, 0] - sho[0]) < 0.65 * H)
         & (q[:, 1] - sho[1] > -0.3 * H)
         & (q[:, 1] - sho[1] < 0.5 * H)
     )
+    cand = np.flatnonzero(body & (q[:, 2] < 0.3 * H))
+    if cand.size > 9:
+        # The foot and shank markers are the lowest on the body.
+        cand = cand[np.argsort(q[cand, 2])[:9]]
     K = cand.size
-    if K == 0:
-        return
-    if K > 12:
-        # Keep the lowest 12: the foot and shank markers are the lowest on the body.
-        cand = cand[np.argsort(q[cand, 2])[:12]]
-        K = 12
-    P = np.vstack([q[cand], np.full((1, 3), np.nan)])  # row K = missing
-    foot_idx = [MARKER_INDEX[f"{near}_{s}"] for s in NEAR_FOOT]
-    U = np.vstack([np.append(_unary(fr, i, cand), MISS_COST) for i in foot_idx])  # (4, K+1)
-    T = _tuples(K, 4)
-    cost = U[np.arange(4), T].sum(axis=1)
-    pts = P[T]  # (M, 4, 3)
-    present = T < K
-    pairs = [
-        (0, 1, geo.d("TIB", "ANK"), False),
-        (1, 2, geo.d("ANK", "HEE"), False),
-        (1, 3, geo.d("ANK", "TOE"), False),
-        (2, 3, geo.d("HEE", "TOE"), False),
-        (0, 2, geo.d("TIB", "HEE"), True),
-        (0, 3, geo.d("TIB", "TOE"), True),
-    ]
-    for a, b, d0, loose in pairs:
-        both = present[:, a] & present[:, b]
-        e = np.zeros(len(T))
-        e[both] = _rigid(pts[both, a], pts[both, b], d0, loose)
-        cost += e
-    allp = present.all(axis=1)
-    if allp.any():
-        sag = pts[allp][:, :, [0, 2]]  # (f, h)
-        out = _triangle_outside(sag[:, 0], sag[:, 3], sag[:, 2], sag[:, 1])
-        cost[allp] += (out / 15.0) ** 2
-    # The toe is ahead of the heel; the tibia above the ankle.
-    ht = present[:, 2] & present[:, 3]
-    cost[ht] += 4.0 * (pts[ht, 3, 0] < pts[ht, 2, 0])
-    ta = present[:, 0] & present[:, 1]
-    cost[ta] += 4.0 * (pts[ta, 0, 2] < pts[ta, 1, 2])
+    chosen: dict[int, int] = {}
+    tf = None
+    if K:
+        foot_idx = [MARKER_INDEX[f"{near}_{s}"] for s in NEAR_FOOT]
+        T = _tuples(K, 4)
+        cost = _base_cost(fr, foot_idx, cand, T)
+        pts = _slots(fr, foot_idx, cand, T)
+        present = T < K
+        pairs = [
+            (0, 1, geo.d("TIB", "ANK"), False),
+            (1, 2, geo.d("ANK", "HEE"), False),
+            (1, 3, geo.d("ANK", "TOE"), False),
+            (2, 3, geo.d("HEE", "TOE"), False),
+            (0, 2, geo.d("TIB", "HEE"), True),
+            (0, 3, geo.d("TIB", "TOE"), True),
+        ]
+        for a, b, d0, loose in pairs:
+            both = present[:, a] & present[:, b]
+            cost[both] += _rigid(pts[both, a], pts[both, b], d0, loose)
+        allp = present.all(axis=1)
+        if allp.any():
+            sag = pts[allp][:, :, [0, 2]]  # (f, h)
+            out = _triangle_outside(sag[:, 0], sag[:, 3], sag[:, 2], sag[:, 1])
+            cost[allp] += (out / 15.0) ** 2
+        # Hard: the toe is ahead of the heel (a foot pitched 60 deg keeps it ahead), the
+        # tibia marker above the ankle one.
+        ht = present[:, 2] & present[:, 3]
+        cost[ht & ~(pts[:, 3, 0] > pts[:, 2, 0])] = np.inf
+        ta = present[:, 0] & present[:, 1]
+        cost[ta & ~(pts[:, 0, 2] > pts[:, 1, 2])] = np.inf
+        # A shank marker never drops far below its standing height while walking.
+        tib_h = geo.rel_sho("near", "TIB")[2]
+        cost[present[:, 0] & ~(pts[:, 0, 2] > 0.6 * tib_h)] = np.inf
 
-    # Far heel and toe for the best near-foot hypotheses.
-    far_idx = [MARKER_INDEX[f"{far}_HEE"], MARKER_INDEX[f"{far}_TOE"]]
-    UF = np.vstack([np.append(_unary(fr, i, cand), MISS_COST) for i in far_idx])
-    T2 = _tuples(K, 2)
-    c2 = UF[np.arange(2), T2].sum(axis=1)
-    both2 = (T2 < K).all(axis=1)
-    p2 = P[T2]
-    c2[both2] += _rigid(p2[both2, 0], p2[both2, 1], geo.d("HEE", "TOE"))
-    c2[both2] += 4.0 * (p2[both2, 1, 0] < p2[both2, 0, 0])
-    best = (np.inf, None, None)
-    for m in np.argsort(cost)[:40]:
-        used = set(T[m][T[m] < K].tolist())
-        clash = np.array([bool(used & set(t[t < K].tolist())) for t in T2])
-        cc = c2.copy()
-        cc[clash] = np.inf
-        # The far foot is deeper than the near one (its lateral markers face away).
-        ne = pts[m, present[m], 1]
-        if ne.size:
-            depth_near = float(np.mean(ne))
-            for k in range(2):
-                pk = T2[:, k] < K
-                cc[pk] += 4.0 * (P[T2[pk, k], 1] < depth_near + 20.0)
-        j = int(np.argmin(cc))
-        if cost[m] + cc[j] < best[0]:
-            best = (cost[m] + cc[j], T[m], T2[j])
-    _, tf, tp = best
-    if tf is None:
-        return
-    chosen = {}
-    for k, i in enumerate(foot_idx):
-        if tf[k] < K:
-            chosen[i] = int(tf[k])
-    for k, i in enumerate(far_idx):
-        if tp[k] < K:
-            chosen[i] = int(tp[k])
+        # Far heel and toe, completing the best near-foot hypotheses.
+        far_idx = [MARKER_INDEX[f"{far}_HEE"], MARKER_INDEX[f"{far}_TOE"]]
+        T2 = _tuples(K, 2)
+        c2 = _base_cost(fr, far_idx, cand, T2)
+        p2 = _slots(fr, far_idx, cand, T2)
+        both2 = (T2 < K).all(axis=1)
+        c2[both2] += _rigid(p2[both2, 0], p2[both2, 1], geo.d("HEE", "TOE"))
+        c2[both2 & ~(p2[:, 1, 0] > p2[:, 0, 0])] = np.inf
+        pres2 = T2 < K
+        order = np.argsort(cost)[:30]
+        total = np.full((len(order), len(T2)), np.inf)
+        for r, m in enumerate(order):
+            if not np.isfinite(cost[m]):
+                continue
+            used = T[m][T[m] < K]
+            clash = (np.isin(T2, used) & pres2).any(axis=1)
+            cc = c2.copy()
+            cc[clash] = np.inf
+            # The far foot is deeper than the near one.
+            ne = pts[m, present[m], 1]
+            if ne.size:
+                depth_near = float(np.mean(ne))
+                for k in range(2):
+                    cc[pres2[:, k] & (p2[:, k, 1] < depth_near + 20.0)] += 4.0
+            total[r] = cost[m] + cc
+        if np.isfinite(total).any():
+            r, j = np.unravel_index(int(np.argmin(total)), total.shape)
+            m = order[r]
+            tf, tp = T[m], T2[j]
+            keep = _unambiguous(cost, T, m, K, fr.ambiguity)
+            for k, i in enumerate(foot_idx):
+                if keep[k]:
+                    chosen[i] = int(tf[k])
+            keep2 = _unambiguous(total[r], T2, j, K, fr.ambiguity)
+            # A lone far-foot blob is heel or toe only if last frame's track says which.
+            lone = int((tp < K).sum()) == 1
+            for k, i in enumerate(far_idx):
+                if not (keep2[k] and tp[k] < K):
+                    continue
+                if lone and not (
+                    fr.age[i] == 1 and _unary(fr, i, cand[tp[k] : tp[k] + 1])[0] < 4.0
+                ):
+                    continue
+                chosen[i] = int(tp[k])
+    _accept(fr, chosen, cand, geo, hip, gate)
 
     # Limb: THI and KNE against HIP, TIB and ANK.
-    used = set(chosen.values())
-    rest = [k for k in range(K) if k not in used]
     thi_i, kne_i = MARKER_INDEX[f"{near}_THI"], MARKER_INDEX[f"{near}_KNE"]
-    if rest:
-        R = np.array([*rest, K])
-        uk = np.append(_unary(fr, kne_i, cand[rest]), MISS_COST)
-        ut = np.append(_unary(fr, thi_i, cand[rest]), MISS_COST)
-        tib = P[tf[0]] if tf[0] < K else None
-        ank = P[tf[1]] if tf[1] < K else None
-        best2 = (np.inf, K, K)
-        for a, ka in enumerate(R):
-            for b, kb in enumerate(R):
-                if ka == kb and ka < K:
-                    continue
-                c = uk[a] + ut[b]
-                pk, pt = P[ka], P[kb]
-                if ka < K:
-                    for other, d0 in ((tib, geo.d("KNE", "TIB")), (ank, geo.d("KNE", "ANK"))):
-                        if other is not None:
-                            c += _rigid(pk[None], other[None], d0)[0]
-                    if hip is not None:
-                        c += _rigid(pk[None], hip[None], geo.d("HIP", "KNE"))[0]
-                if kb < K:
-                    if hip is not None:
-                        c += _rigid(pt[None], hip[None], geo.d("HIP", "THI"))[0]
-                    if ka < K:
-                        c += _rigid(pt[None], pk[None], geo.d("THI", "KNE"))[0]
-                        c += 4.0 * (pt[2] < pk[2])
-                if c < best2[0]:
-                    best2 = (c, ka, kb)
-        if best2[1] < K:
-            chosen[kne_i] = int(best2[1])
-        if best2[2] < K:
-            chosen[thi_i] = int(best2[2])
-
-    _accept(fr, chosen, cand, geo, hip, gate)
+    lc = np.flatnonzero(fr.free & body & (q[:, 2] > 0.15 * H) & (q[:, 2] < 0.62 * H))
+    K2 = lc.size
+    if K2 == 0:
+        return
+    T3 = _tuples(K2, 2)
+    c3 = _base_cost(fr, [kne_i, thi_i], lc, T3)
+    p3 = _slots(fr, [kne_i, thi_i], lc, T3)
+    pr = T3 < K2
+    anchors = []
+    for site in ("TIB", "ANK"):
+        i = MARKER_INDEX[f"{near}_{site}"]
+        if fr.assign[i] >= 0:
+            anchors.append((fr.pos(i)[fr.assign[i]], site))
+    for a_pos, site in anchors:
+        c3[pr[:, 0]] += _rigid(p3[pr[:, 0], 0], a_pos[None], geo.d("KNE", site))
+        # The knee is above the shank markers.
+        c3[pr[:, 0] & ~(p3[:, 0, 2] > a_pos[2])] = np.inf
+    if hip is not None:
+        c3[pr[:, 0]] += _rigid(p3[pr[:, 0], 0], hip[None], geo.d("HIP", "KNE"))
+        c3[pr[:, 1]] += _rigid(p3[pr[:, 1], 1], hip[None], geo.d("HIP", "THI"))
+    for k, site in ((0, "KNE"), (1, "THI")):
+        c3[pr[:, k] & ~(p3[:, k, 2] > 0.6 * geo.rel_sho("near", site)[2])] = np.inf
+    both = pr.all(axis=1)
+    c3[both] += _rigid(p3[both, 0], p3[both, 1], geo.d("THI", "KNE"))
+    c3[both & ~(p3[:, 1, 2] > p3[:, 0, 2])] = np.inf
+    j = int(np.argmin(c3))
+    if not np.isfinite(c3[j]):
+        return
+    keep = _unambiguous(c3, T3, j, K2, fr.ambiguity)
+    chosen = {i: int(T3[j, k]) for k, i in enumerate((kne_i, thi_i)) if keep[k]}
+    _accept(fr, chosen, lc, geo, hip, gate)
 
 
 RIGID = (
@@ -611,15 +782,15 @@ def _accept(
     hip: np.ndarray | None,
     gate: float,
 ) -> None:
-    """Step 10 gate: drop a label whose track or rigid distances it breaks; keep the rest."""
-    q = fr.q
-    pos = {MARKER_NAMES[i]: q[cand[k]] for i, k in chosen.items()}
-    if hip is not None:
-        pos.setdefault(f"{fr.near}_HIP", hip)
+    """Step 10 gate: drop a label that breaks its track or a rigid distance to an accepted
+    or co-chosen marker (both ends of a broken distance go: which one is wrong is unknown).
+    """
+    pos = {MARKER_NAMES[i]: fr.pos(i)[cand[k]] for i, k in chosen.items()}
+    for i in np.flatnonzero(fr.assign >= 0):
+        pos.setdefault(MARKER_NAMES[i], fr.pos(i)[fr.assign[i]])
     bad: set[int] = set()
     for i, k in chosen.items():
-        u = _unary(fr, i, np.array([cand[k]]))[0]
-        if u > gate**2 * 3:
+        if _unary(fr, i, np.array([cand[k]]))[0] > 3 * gate**2:
             bad.add(i)
     for side in (fr.near, "L" if fr.near == "R" else "R"):
         for a, b, loose in RIGID:
@@ -627,8 +798,6 @@ def _accept(
             if na in pos and nb in pos:
                 e = _rigid(pos[na][None], pos[nb][None], geo.d(a, b), loose)[0]
                 if e > gate**2:
-                    # Blame the one without another good partner: drop both unless one is the
-                    # already accepted hip.
                     for n in (na, nb):
                         if MARKER_INDEX[n] in chosen:
                             bad.add(MARKER_INDEX[n])
@@ -690,7 +859,7 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     if mk.header.trial != st.trial or mk.header.frame <= st.frame:
         st = init(p)
         st = replace(st, trial=mk.header.trial)
-    pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)[:, 0, :]
+    pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
     st, assign = label_frame(st, pos, mk.header.frame, ff, geo)
     near = "" if st.direction == 0 else ("R" if st.direction > 0 else "L")
     if st.sho_x is None:
@@ -752,13 +921,20 @@ def score_labelling(
         n_wrong = 0
         for i in np.flatnonzero(np.isfinite(px).all(axis=1)):
             labels += 1
-            d = np.where(vis, np.hypot(*(tp - px[i]).T), np.inf)
-            j = int(np.argmin(d))
-            if j == i and d[j] <= tol_px:
-                good[i] = True
+            d = np.hypot(*(tp - px[i]).T)
+            # The label's own marker must lie within tol_px, and no visible marker may be
+            # nearer by more than 1 px: a blob where two markers overlap (near and far ASI
+            # seen end-on) is right for either, and a partly hidden marker (flagged
+            # occluded, its blob displaced) still counts.
+            dv = np.where(vis, d, np.inf)
+            j = int(np.argmin(dv))
+            own = float(d[i]) if np.isfinite(d[i]) else np.inf
+            if own <= tol_px and own <= dv[j] + 1.0:
+                good[i] = vis[i]
             else:
                 n_wrong += 1
-        correct += int(good.sum())
+                continue
+            correct += 1
         ok_frames += n_wrong == 0
         near = m.near_side or ("R" if m.direction >= 0 else "L")
         expect = vis & np.array([n[0] == near or n.split("_")[1] in FAR_SEEN for n in MARKER_NAMES])

@@ -335,7 +335,8 @@ def locate_depths(
     # Windows are padded to the largest of a batch, so blobs go in batches of similar size:
     # one wide blob (a lamp, a merged pair) must not make every window wide.
     half = np.ceil(region_radius + p["D0"])
-    size_class = np.where(ok, np.ceil(np.log2(np.maximum(np.nan_to_num(half), 1.0))), -1)
+    # Classes: half-size <= 8 px (every marker up close), <= 16, <= 32, ...
+    size_class = np.where(ok, np.ceil(np.log2(np.maximum(np.nan_to_num(half) / 8.0, 1.0))), -1)
     for cls in np.unique(size_class[ok]):
         idx = np.flatnonzero(ok & (size_class == cls))
         margin = np.full(idx.size, p["D0"])

@@ -337,6 +337,17 @@ def label_pose(
         elif len(low) >= 2:
             put(f"{side}_HEE", low[0])
             put(f"{side}_TOE", low[-1])
+        else:
+            # One far foot blob: heel or toe, whichever near one it lines up with.
+            nt, nh = out[MARKER_INDEX[f"{near}_TOE"]], out[MARKER_INDEX[f"{near}_HEE"]]
+            ref_t = f[list(ok).index(nt)] if nt >= 0 else None
+            ref_h = f[list(ok).index(nh)] if nh >= 0 else None
+            if ref_t is not None and (
+                ref_h is None or abs(f[low[0]] - ref_t) < abs(f[low[0]] - ref_h)
+            ):
+                put(f"{side}_TOE", low[0])
+            elif ref_h is not None:
+                put(f"{side}_HEE", low[0])
     return out
 
 
@@ -409,8 +420,8 @@ def build_model(
                     dd = np.linalg.norm(f - key[b], axis=1)
                     if dd.min() < 25.0:
                         matches.append(f[np.argmin(dd)])
-            # A blob seen in fewer than half the frames is a transient (a hand, a glint).
-            smooth[b] = np.median(matches, axis=0) if len(matches) >= len(valid) / 2 else np.nan
+            # A blob seen in under a third of the frames is a transient (a hand, a glint).
+            smooth[b] = np.median(matches, axis=0) if len(matches) >= len(valid) / 3 else np.nan
         idx = label_pose(smooth, facing, layout, gate_sigma)
         for i in np.flatnonzero(idx >= 0):
             floor_ref[i] = smooth[idx[i]]
@@ -444,8 +455,23 @@ def build_model(
     def seg(a: str, b: str) -> float:
         return float(site_d[SITES.index(a), SITES.index(b)])
 
+    # Standing offsets of every seen marker from the near shoulder: forward (along the
+    # facing direction), e (away from the camera), height. Label predicts from these.
+    sho_q = floor_ref[MARKER_INDEX[f"{near}_SHO"]]
+    offsets: dict[str, list[float]] = {}
+    if np.isfinite(sho_q).all():
+        for i, name in enumerate(MARKER_NAMES):
+            q = floor_ref[i]
+            if np.isfinite(q).all():
+                side = "near" if name[0] == near else "far"
+                offsets[f"{side}_{name[2:]}"] = [
+                    float(facing * (q[0] - sho_q[0])),
+                    float(q[1] - sho_q[1]),
+                    float(q[2]),
+                ]
     extra = {
         "facing": facing,
+        "offsets_from_shoulder": offsets,
         "frames_used": len(floors),
         "sho_height_mm": sho_h,
         "layout": {s: [float(x) for x in measured[j]] for j, s in enumerate(SITES)},

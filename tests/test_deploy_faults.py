@@ -12,11 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from gaitflow.bus import Bus
-from gaitflow.bus.router import client_config, local_endpoint
+import yaml
+from gaitflow.bus import Bus, BusConfig
+from gaitflow.bus.router import local_endpoint
 from gaitflow.schemas import RawFrame, decode
 from gaitflow.stages.graph import load
 from gaitflow.stages.launcher import Launcher
+
+from gaitflow.deployment import RECONNECT
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -82,12 +85,22 @@ def test_router_restart_and_stage_sigkill(tmp_path: Path) -> None:
     gpath = tmp_path / "graph.yaml"
     gpath.write_text(GRAPH)
     ep = local_endpoint()
+    # The reconnect settings the generated role configs give every client (RECONNECT).
+    bus_doc = {"connect": [ep], "site": "faults", "extra": {"connect/retry": RECONNECT}}
+    cfg_path = tmp_path / "stages.yaml"
+    cfg_path.write_text(yaml.safe_dump({"bus": bus_doc}))
     la = Launcher(
-        load(gpath), endpoint=ep, graph_path=gpath, metrics_port=0, echo=False, backoff_s=0.2
+        load(gpath),
+        endpoint=ep,
+        graph_path=gpath,
+        config=cfg_path,
+        metrics_port=0,
+        echo=False,
+        backoff_s=0.2,
     )
     with la:
         la.wait_ready(30)
-        bus = Bus(client_config(ep, site="faults"))
+        bus = Bus(BusConfig.from_mapping(bus_doc))
         feed = Feed(bus).start()
         try:
             assert feed.flowing_since(time.monotonic() - 1, 10) is not None, "pipeline never ran"

@@ -78,7 +78,7 @@ def test_session_source_selects_recordings_and_limits(session):
     root, _ = session
     out = list(grab(source="session", path=str(root), recordings="walk-01"))
     assert [g[0].header.frame for g in out] == [0, 1, 3, 4]
-    out = list(grab(source="session", path=str(root), recordings="static,walk-01", max_frames=3))
+    out = list(grab(source="session", path=str(root), recordings="walk-01,static", max_frames=3))
     assert [(g[0].header.trial, g[0].header.frame, g[0].header.last) for g in out] == [
         ("static", 0, False),
         ("static", 1, True),

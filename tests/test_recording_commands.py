@@ -115,7 +115,7 @@ def test_tap_summary_rate_latency_and_fields() -> None:
     assert "publish->receive ms: mean 6.0" in text
     assert "capture->receive ms: mean 10.0" in text
     assert "frame=9" in text and "trial=walk-01" in text
-    assert "centroid[2, 2]" in text and "threshold=109" in text
+    assert "centroid[2, 2]" in text and "threshold=109" in text and "area[2] 1..1" in text
     assert "malformed: 1" in text
 
 

@@ -283,3 +283,14 @@ def test_missing_frames_csv(session):
 def test_frames_csv_tolerates_extra_columns_blank_lines_and_bom():
     rows = parse_frames_csv("\ufeffindex,timestamp_ns,note\n\n0,10,a\n2,30,b\n\n")
     assert [(r.index, r.timestamp_ns) for r in rows] == [(0, 10), (2, 30)]
+
+
+def test_png_that_cannot_be_read_as_a_file_is_counted(session):
+    root, _ = session
+    p = _png_path(root, "ir", 2)
+    p.unlink()
+    p.mkdir()  # reading it raises IsADirectoryError: an OS error, counted like the rest
+    r = SessionReader(root)
+    assert [f[0] for f in read_all(r, "walk-01")] == [0, 1, 4, 5, 9]
+    assert r.skipped == {"unreadable": 1}
+    assert "ir/000002.png: unreadable" in r.warnings[0]

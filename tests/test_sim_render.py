@@ -34,7 +34,9 @@ def test_projection_round_trip_within_0_01_px(flat_renderer: Renderer) -> None:
     r = Renderer(SimConfig())  # default pose: tilted, panned, rolled
     cam = r.cam
     rng = np.random.default_rng(3)
-    world = np.c_[rng.uniform(-1800, 1800, 200), rng.uniform(1500, 4000, 200), rng.uniform(0, 2000, 200)]
+    world = np.c_[
+        rng.uniform(-1800, 1800, 200), rng.uniform(1500, 4000, 200), rng.uniform(0, 2000, 200)
+    ]
     pc = r.to_cam(world)
     uv = cam.project(pc)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= 511) & (uv[:, 1] >= 0) & (uv[:, 1] <= 423)
@@ -71,7 +73,7 @@ def test_marker_is_saturated_blob_over_depth_hole(flat_renderer: Renderer) -> No
     # Partial-pixel edges: pixels next to the blob are brighter than the wall but not
     # saturated.
     uv = r.cam.project(c_cam[None])[0]
-    v, u = int(round(uv[1])), int(round(uv[0]))
+    v, u = round(uv[1]), round(uv[0])
     ring = out.ir[v - 4 : v + 5, u - 4 : u + 5].astype(float)
     wall = np.median(out.ir[v - 30 : v - 20, u - 30 : u - 20])
     partial = (ring > wall + 8 * cfg.ir_read_noise) & (ring < SAT)
@@ -83,7 +85,7 @@ def test_motion_blur_streaks_fast_marker(flat_renderer: Renderer) -> None:
     r = flat_renderer
     c0 = np.array([0.0, 0.0, 2500.0])
     # 4 m/s across the image during a 12 ms exposure = 48 mm = ~7 px of travel.
-    path = np.stack([c0 + [dx, 0, 0] for dx in np.linspace(-24, 24, 8)])
+    path = np.stack([c0 + np.array([dx, 0.0, 0.0]) for dx in np.linspace(-24, 24, 8)])
     still = r.render(_pose(c0 @ r.R + r.C), np.random.default_rng(1))
     sph = (path @ r.R + r.C)[:, None, :]
     e = np.zeros((0, 3))
@@ -91,6 +93,7 @@ def test_motion_blur_streaks_fast_marker(flat_renderer: Renderer) -> None:
     bright_still = (still.ir > 20000).sum()
     bright_moving = (moving.ir > 20000).sum()
     assert bright_moving > 1.5 * bright_still
+
     # The streak runs along the motion (image x): about 7 px longer than the still blob.
     def extent(img: np.ndarray, axis: int) -> int:
         idx = np.flatnonzero((img > 20000).any(axis=axis))
@@ -141,7 +144,7 @@ def test_marker_behind_arm_is_dark_and_flagged_occluded(flat_renderer: Renderer)
     )
     out = r.render(pose, np.random.default_rng(2))
     uv = r.cam.project(c_cam[None])[0]
-    v, u = int(round(uv[1])), int(round(uv[0]))
+    v, u = round(uv[1]), round(uv[0])
     assert out.ir[v - 6 : v + 7, u - 6 : u + 7].max() < 20000
     # The arm itself is there in depth.
     assert abs(float(np.median(out.depth[v - 3 : v + 4, u - 3 : u + 4])) - 2105) < 20

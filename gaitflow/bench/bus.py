@@ -92,6 +92,7 @@ class _Sink:
         self.last_ns = 0
         self.event = threading.Event()
         self.expect = 0
+        self.t_reset = 0
 
     def __call__(self, key: str, payload: bytes) -> None:
         now = time.time_ns()
@@ -105,7 +106,14 @@ class _Sink:
         if len(self.got) >= self.expect:
             self.event.set()
 
+    def wait(self, idle_s: float = 3.0) -> None:
+        """Until every expected frame arrived, or nothing arrived for ``idle_s``."""
+        while not self.event.wait(0.1):
+            if time.time_ns() - max(self.last_ns, self.t_reset) > idle_s * 1e9:
+                return
+
     def reset(self, expect: int) -> None:
+        self.t_reset = time.time_ns()
         self.got, self.expect = [], expect
         self.event.clear()
 
@@ -119,10 +127,12 @@ def _frames(ours: bool) -> tuple[np.ndarray, np.ndarray, bytes]:
     return ir, depth, bytes(size)
 
 
-def _payload(ours: bool, i: int, ir: np.ndarray, depth: np.ndarray, raw: bytearray) -> bytes:
+def _payload(
+    ours: bool, trial: str, i: int, last: bool, ir: np.ndarray, depth: np.ndarray, raw: bytearray
+) -> bytes:
     now = time.time_ns()
     if ours:
-        hdr = RawFrame.make_header("cam0", "walk-01", i, now)
+        hdr = RawFrame.make_header("cam0", trial, i, now, last)
         return RawFrame(header=hdr, ir=ir, depth=depth).encode()
     struct.pack_into("<qq", raw, 0, i, now)
     return bytes(raw)
@@ -131,23 +141,25 @@ def _payload(ours: bool, i: int, ir: np.ndarray, depth: np.ndarray, raw: bytearr
 def _measure(
     bus: Bus, ours: bool, hops: int, frames: int, lat_frames: int, fps: float
 ) -> dict[str, Any]:
+    """One throughput run and one paced latency run through ``hops`` relays."""
+    topic = "raw" if ours else "floor"
     sink = _Sink(ours)
-    h = bus.subscribe(f"gaitflow/{SITE}/*/raw-{hops}", sink)
-    pub = bus.publisher(f"gaitflow/{SITE}/cam0/raw-0", block=True)
+    h = bus.subscribe(f"gaitflow/{SITE}/*/{topic}-{hops}", sink)
+    pub = bus.publisher(f"gaitflow/{SITE}/cam0/{topic}-0", block=True)
     ir, depth, blank = _frames(ours)
     raw = bytearray(blank)
-    time.sleep(0.2)
+    time.sleep(0.1)
     # warm-up: a few frames through the chain
     sink.reset(5)
     for i in range(5):
-        pub.put(_payload(ours, i, ir, depth, raw))
-    sink.event.wait(10)
+        pub.put(_payload(ours, "walk-00", i, i == 4, ir, depth, raw))
+    sink.wait()
     # throughput, back to back
     sink.reset(frames)
     t0 = time.time_ns()
     for i in range(frames):
-        pub.put(_payload(ours, i, ir, depth, raw))
-    sink.event.wait(60)
+        pub.put(_payload(ours, "walk-01", i, i == frames - 1, ir, depth, raw))
+    sink.wait()
     got = list(sink.got)
     tput = len(got) / max(1e-9, (sink.last_ns - t0) / 1e9)
     lost = frames - len({g[0] for g in got})
@@ -159,8 +171,8 @@ def _measure(
         wait = t_start + i / fps - time.perf_counter()
         if wait > 0:
             time.sleep(wait)
-        pub.put(_payload(ours, i, ir, depth, raw))
-    sink.event.wait(30)
+        pub.put(_payload(ours, "walk-02", i, i == lat_frames - 1, ir, depth, raw))
+    sink.wait()
     lat = np.array([g[1] for g in sink.got], dtype=np.float64) / 1e6
     lost += lat_frames - len(lat)
     h.undeclare()
@@ -174,15 +186,32 @@ def _measure(
     }
 
 
+def _median(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    return {
+        "fps": float(np.median([r["fps"] for r in runs])),
+        "p50_ms": float(np.median([r["p50_ms"] for r in runs])),
+        "p99_ms": float(np.median([r["p99_ms"] for r in runs])),
+        "lost": int(sum(r["lost"] for r in runs)),
+        "ordered": all(r["ordered"] for r in runs),
+        "runs": len(runs),
+    }
+
+
 def run_bench(
     frames: int = 300,
     latency_frames: int = 60,
     hops: tuple[int, ...] = (1, 3, 5),
     shm: str = "auto",
     fps: float = 30.0,
+    repeat: int = 3,
     log_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """Run the benchmark; return the figures (see the module docstring)."""
+    """Run the benchmark; return the figures (see the module docstring).
+
+    For each hop count both relay chains run side by side (idle while the other is
+    measured) and the raw and our runs alternate ``repeat`` times; figures are medians,
+    so a burst of load from elsewhere on the machine hits both variants alike.
+    """
     py = sys.executable
     with tempfile.TemporaryDirectory(prefix="gaitflow-bench-bus-") as tmp:
         d = Path(log_dir or tmp)
@@ -206,31 +235,29 @@ def run_bench(
             bus = Bus(client_config(ep, site=SITE), shm=shm)
             try:
                 for h in hops:
-                    row: dict[str, Any] = {}
-                    for variant in ("raw", "ours"):
-                        graph = d / f"graph-{h}.yaml"
-                        graph.write_text(_graph(h))
-                        if variant == "ours":
-                            argv = [
-                                [py, "-m", "gaitflow.cli", "stage", f"relay{k}", "--graph",
-                                 str(graph), "--config", str(cfg), "--connect", ep]
-                                for k in range(1, h + 1)
-                            ]  # fmt: skip
-                        else:
-                            argv = [
-                                [py, "-m", "gaitflow.bench.bus", ep, f"raw-{k - 1}", f"raw-{k}",
-                                 str(k), shm]
-                                for k in range(1, h + 1)
-                            ]  # fmt: skip
-                        procs = [_spawn(a, log) for a in argv]
-                        try:
-                            _wait_alive(bus, h)
-                            row[variant] = _measure(
-                                bus, variant == "ours", h, frames, latency_frames, fps
-                            )
-                        finally:
-                            _stop(procs)
-                        time.sleep(0.3)
+                    graph = d / f"graph-{h}.yaml"
+                    graph.write_text(_graph(h))
+                    argv = [
+                        [py, "-m", "gaitflow.cli", "stage", f"relay{k}", "--graph",
+                         str(graph), "--config", str(cfg), "--connect", ep]
+                        for k in range(1, h + 1)
+                    ] + [
+                        [py, "-m", "gaitflow.bench.bus", ep, f"floor-{k - 1}", f"floor-{k}",
+                         str(k), shm]
+                        for k in range(1, h + 1)
+                    ]  # fmt: skip
+                    procs = [_spawn(a, log) for a in argv]
+                    runs: dict[str, list[dict[str, Any]]] = {"raw": [], "ours": []}
+                    try:
+                        _wait_alive(bus, 2 * h)
+                        for _ in range(repeat):
+                            for variant in ("raw", "ours"):
+                                runs[variant].append(
+                                    _measure(bus, variant == "ours", h, frames, latency_frames, fps)
+                                )
+                    finally:
+                        _stop(procs)
+                    row: dict[str, Any] = {k: _median(v) for k, v in runs.items()}
                     row["ratio_cost"] = row["raw"]["fps"] / row["ours"]["fps"]
                     row["ratio_p50"] = row["ours"]["p50_ms"] / row["raw"]["p50_ms"]
                     results[str(h)] = row
@@ -244,6 +271,7 @@ def run_bench(
         "frames": frames,
         "latency_frames": latency_frames,
         "latency_rate_fps": fps,
+        "repeat": repeat,
         "shm": shm,
         "hops": results,
         "goals": {
@@ -274,13 +302,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="auto",
         help="Zenoh shared memory in every session (auto = Zenoh's default)",
     )
+    p.add_argument("--repeat", type=int, default=3, help="alternating runs per variant (median)")
     add_json_flag(p)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     hops = tuple(int(h) for h in args.hops.split(","))
-    fig = run_bench(args.frames, args.latency_frames, hops, args.shm)
+    fig = run_bench(args.frames, args.latency_frames, hops, args.shm, repeat=args.repeat)
     rows = []
     for h, r in fig["hops"].items():
         rows.append(
@@ -299,7 +328,8 @@ def _run(args: argparse.Namespace) -> int:
     g = fig["goals"]
     title = (
         f"bus: {fig['frame_bytes']} B frames, {fig['frames']} back to back, "
-        f"latency at {fig['latency_rate_fps']:.0f} fps, shm={fig['shm']}"
+        f"latency at {fig['latency_rate_fps']:.0f} fps, shm={fig['shm']}, "
+        f"median of {fig['repeat']} alternating runs"
     )
     cols = [
         "hops", "raw fps", "our fps", "our/raw cost", "raw p50 ms", "our p50 ms",
@@ -321,7 +351,7 @@ def _raw_relay(endpoint: str, src: str, dst: str, index: str, shm: str) -> None:
     bus = Bus(client_config(endpoint, site=SITE), shm=shm)
     pub = bus.publisher(f"gaitflow/{SITE}/cam0/{dst}", block=True)
     bus.subscribe(f"gaitflow/{SITE}/*/{src}", lambda k, p: pub.put(p))
-    bus.liveliness_token(f"gaitflow/{SITE}/@alive/raw-relay/{index}")
+    bus.liveliness_token(f"gaitflow/{SITE}/@alive/floor-relay/{index}")
     stop = threading.Event()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *a: stop.set())

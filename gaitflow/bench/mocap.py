@@ -3,8 +3,8 @@ the simulator's ground truth and printed beside the paper's Tables II and III.
 
 For each trial, the walk recording is rendered once (its first ``--frames`` frames, so that
 the clean stage meets the stray reflectors from the trial's start, as it would live) and
-run through the three stage cores twice: with the adaptive threshold (Alg. 1) and with the static one (the Table II
-baseline). Ground truth is used here only, to score; no stage sees it.
+run through the three stage cores twice: with the adaptive threshold (Alg. 1) and with the
+static one (the Table II baseline). Ground truth is used here only, to score; no stage sees it.
 
 Scores (per visible truth marker and frame; "visible" = in view and not occluded):
 
@@ -16,8 +16,10 @@ Scores (per visible truth marker and frame; "visible" = in view and not occluded
   mode (``gaitflow.markers.cluster_mode``) and the true marker centre, mm; also the median
   signed Z error (bias);
 - **false blobs** per frame: blobs matched to no visible marker;
-- **ms/frame** per stage, p50 and p99, on one core (OpenCV threads set to 1 in this
-  process); single runs on a shared machine are noisy.
+- **ms/frame** per stage, p50 and p99: CPU time of the one thread running the stages
+  (``time.thread_time``; OpenCV threads set to 1), so that time spent waiting for a core
+  on a shared machine is not counted; the wall time of all three stages is reported too.
+  Single runs; the machine yardstick printed below scales them.
 
 Variants (``--variants``) change the simulator, never the stage parameters: ``base``,
 ``d20`` / ``d30`` (20 / 30 mm markers), ``near`` / ``far`` (walking line at 2.0 / 3.5 m).
@@ -66,7 +68,9 @@ class Score:
     errors: list[float] = field(default_factory=list)
     z_bias: list[float] = field(default_factory=list)
     errors_by_mode: dict[str, list[float]] = field(default_factory=dict)
+    errors_by_site: dict[str, list[float]] = field(default_factory=dict)
     false_blobs: int = 0
+    missed_merged: int = 0  # missed markers with another visible marker within the gate
     frames: int = 0
     ms: dict[str, list[float]] = field(default_factory=dict)
 
@@ -106,6 +110,14 @@ def score_frame(score: Score, markers: Any, truth: Any, gate: float) -> None:
     score.visible += tidx.size
     score.detected += len(pairs)
     score.false_blobs += pred.shape[0] - len(pairs)
+    if len(pairs) < tidx.size:
+        tp = np.asarray(truth.pixel)[tidx]
+        got = {tj for _, tj, _ in pairs}
+        for j in range(tidx.size):
+            if j not in got:
+                d = np.hypot(*(tp - tp[j]).T)
+                d[j] = np.inf
+                score.missed_merged += int(d.min() <= gate)
     for bi, tj, dist in pairs:
         for b in BETAS:
             if dist <= b:
@@ -118,6 +130,8 @@ def score_frame(score: Score, markers: Any, truth: Any, gate: float) -> None:
             score.errors.append(err)
             score.z_bias.append(float(p[2] - truth.position[k, 2]))
             score.errors_by_mode.setdefault(CLUSTER_MODES[mode], []).append(err)
+            site = MARKER_NAMES[k].split("_", 1)[1]
+            score.errors_by_site.setdefault(site, []).append(err)
 
 
 def _pct(x: Sequence[float], q: float) -> float:
@@ -137,9 +151,12 @@ def summarise(s: Score) -> dict[str, Any]:
         "z_bias_mm": _pct(s.z_bias, 50),
         "located": 100.0 * len(s.errors) / max(s.detected, 1),
         "false_blobs_per_frame": s.false_blobs / max(s.frames, 1),
+        "missed_merged": 100.0 * s.missed_merged / vis,
+        "detected_resolvable": 100.0 * s.detected / max(vis - s.missed_merged, 1),
     }
     for m, errs in sorted(s.errors_by_mode.items()):
         out[f"err_median_mm_{m}"] = _pct(errs, 50)
+    out["err_median_mm_by_site"] = {k: _pct(v, 50) for k, v in sorted(s.errors_by_site.items())}
     for st, ms in sorted(s.ms.items()):
         out[f"ms_{st}_p50"] = _pct(ms, 50)
         out[f"ms_{st}_p99"] = _pct(ms, 99)
@@ -175,18 +192,22 @@ def run_stages(frames: list, method: str, score: Score, gate: float, refine: boo
         "locate": (locate.SPEC, {}),
     }
     state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
+    clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
     for raw, truth in frames:
-        t0 = time.perf_counter()
+        w0 = time.perf_counter()
+        t0 = clock()
         state["clean"], (cf,) = clean.SPEC.step(state["clean"], {"raw": raw})
-        t1 = time.perf_counter()
+        t1 = clock()
         state["detect"], (bl,) = detect.SPEC.step(state["detect"], {"clean": cf})
-        t2 = time.perf_counter()
+        t2 = clock()
         state["locate"], (mk,) = locate.SPEC.step(state["locate"], {"clean": cf, "blobs": bl})
-        t3 = time.perf_counter()
+        t3 = clock()
+        w3 = time.perf_counter()
         score.add_ms("clean", 1e3 * (t1 - t0))
         score.add_ms("detect", 1e3 * (t2 - t1))
         score.add_ms("locate", 1e3 * (t3 - t2))
         score.add_ms("detect+locate", 1e3 * (t3 - t1))
+        score.add_ms("wall_all", 1e3 * (w3 - w0))
         score_frame(score, mk, truth, gate)
 
 
@@ -213,6 +234,19 @@ def bench(
                 )
         results[var] = {m: summarise(s) for m, s in scores.items()}
     return results
+
+
+def numpy_op_us() -> float:
+    """Cost of one tiny numpy operation now, in us: a yardstick for the machine's load.
+
+    Most of the per-frame time of these stages is small-array overhead, so their ms/frame
+    scale with it; an idle modern core gives about 0.5-1 us.
+    """
+    a = np.zeros(10)
+    t = time.perf_counter()
+    for _ in range(20000):
+        a + 1.0
+    return 1e6 * (time.perf_counter() - t) / 20000
 
 
 def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
@@ -265,6 +299,8 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
                     r["frames"],
                     r["visible"],
                     r["false_blobs_per_frame"],
+                    r["missed_merged"],
+                    r["detected_resolvable"],
                     r["located"],
                     r["z_bias_mm"],
                     r.get("err_median_mm_normal"),
@@ -273,6 +309,8 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
                     r["ms_clean_p50"],
                     r["ms_locate_p50"],
                     r["ms_locate_p99"],
+                    r["ms_wall_all_p50"],
+                    r["ms_wall_all_p99"],
                 ]
             )
         cols2 = [
@@ -280,6 +318,8 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
             "frames",
             "visible",
             "false/frame",
+            "missed merged %",
+            "detected resolvable %",
             "located %",
             "Z bias mm",
             "med normal",
@@ -288,8 +328,17 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
             "clean p50 ms",
             "locate p50 ms",
             "locate p99 ms",
+            "wall 3 stages p50",
+            "wall p99",
         ]
         tables.append(format_table(f"details, variant {var}", cols2, rows2))
+        sites = list(dict.fromkeys(n.split("_", 1)[1] for n in MARKER_NAMES))
+        rows3 = [
+            [f"ours {m}"] + [r["err_median_mm_by_site"].get(s) for s in sites]
+            for m, r in res.items()
+        ]
+        cols3 = ["3D median mm by site", *(f"{s} ({cluster_mode('L_' + s)})" for s in sites)]
+        tables.append(format_table(f"3D error by marker site, variant {var}", cols3, rows3))
     return tables
 
 
@@ -306,6 +355,7 @@ def _run(args: argparse.Namespace) -> int:
         if v not in VARIANTS:
             raise ConfigError(f"bench mocap: unknown variant {v!r} (known: {list(VARIANTS)})")
     t0 = time.perf_counter()
+    op_us = numpy_op_us()
     results = bench(
         trials, args.frames, args.seed, variants, args.gate, refine_ablation=args.ablation
     )
@@ -317,8 +367,11 @@ def _run(args: argparse.Namespace) -> int:
         "paper": {k: {str(a): b for a, b in v.items()} for k, v in PAPER.items()},
         "goals": GOALS,
         "wall_s": time.perf_counter() - t0,
+        "numpy_op_us": op_us,
     }
-    emit(args, figures, _tables(results, trials))
+    tables = _tables(results, trials)
+    tables.append(f"machine yardstick: one tiny numpy op = {op_us:.2f} us (idle core: ~0.5-1)")
+    emit(args, figures, tables)
     return 0
 
 
@@ -333,9 +386,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--trials", nargs="+", help="bundled trial ids (default: the first one)")
     p.add_argument("--all", action="store_true", help="every bundled trial")
-    p.add_argument(
-        "--frames", type=int, default=90, help="first frames of each walk (0 = all)"
-    )
+    p.add_argument("--frames", type=int, default=90, help="first frames of each walk (0 = all)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
     p.add_argument("--variants", default="base", help=f"comma list of {list(VARIANTS)}")
     p.add_argument("--gate", type=float, default=4.0, help="matching gate, px")

@@ -2,7 +2,7 @@
 
 Frames come from the simulator (a stretch of a quick walking trial) so the PNGs compress
 like real Kinect v2 frames; ``--synthetic`` uses random-noise frames instead (the worst
-case for PNG) and needs no simulator. Writes are timed at several PNG compression levels,
+case for PNG) and needs no simulator. Writes are timed with several PNG settings,
 reads with one and two decoder threads; "decode" is PNG decoding from memory alone, i.e.
 the ceiling of a reader whose file system costs nothing.
 """
@@ -68,15 +68,20 @@ def _folder_bytes(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*.png"))
 
 
-def run(frames: Frames, doc: dict[str, Any], levels: tuple[int, ...]) -> dict[str, Any]:
-    """Time writes (per level, 1 and 2 threads) and reads; return the figures."""
+# (PNG level, zlib strategy): no compression, the default, and zlib's default strategy at
+# level 1 and at OpenCV's default level 3 for comparison.
+WRITE_CONFIGS = (
+    (0, "huffman"),
+    (DEFAULT_PNG_COMPRESSION, DEFAULT_PNG_STRATEGY),
+    (1, "default"),
+    (3, "default"),
+)
+
+
+def run(frames: Frames, doc: dict[str, Any]) -> dict[str, Any]:
+    """Time writes (per PNG setting, 1 and 2 threads) and reads; return the figures."""
     n = len(frames)
-    # The read timings use the default level's folder: always write it.
-    levels = tuple(sorted({*levels, DEFAULT_PNG_COMPRESSION}))
-    # Each level with the default strategy (Huffman-only), plus zlib's own default strategy
-    # at the default level for comparison, each with one and two encoder threads.
-    configs = [(lv, DEFAULT_PNG_STRATEGY) for lv in levels]
-    configs.insert(levels.index(DEFAULT_PNG_COMPRESSION) + 1, (DEFAULT_PNG_COMPRESSION, "default"))
+    configs = WRITE_CONFIGS
     res: dict[str, Any] = {"frames": n, "width": doc["width"], "height": doc["height"]}
     writes = []
     with tempfile.TemporaryDirectory(prefix="gaitflow-bench-session-") as tmp:
@@ -134,11 +139,11 @@ def run(frames: Frames, doc: dict[str, Any], levels: tuple[int, ...]) -> dict[st
 def _main(args: argparse.Namespace) -> int:
     if args.synthetic:
         frames, doc = synthetic_frames(args.frames)
-        res = run(frames, doc, tuple(args.levels))
+        res = run(frames, doc)
         res["frames_from"] = "synthetic noise"
     else:
         frames, doc = sim_frames(args.frames)
-        res = run(frames, doc, tuple(args.levels))
+        res = run(frames, doc)
         res["frames_from"] = "simulator (walk-01, quick protocol, seed 0)"
     write_rows = [
         [w["level"], w["strategy"], w["workers"], w["fps"], w["kib_per_frame"]]
@@ -173,13 +178,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--frames", type=int, default=30, help="frames to write and read (default 30)")
-    p.add_argument(
-        "--levels",
-        type=int,
-        nargs="+",
-        default=[0, 1, 3, 6],
-        help="PNG compression levels to time (default 0 1 3 6)",
-    )
     p.add_argument(
         "--synthetic", action="store_true", help="random-noise frames instead of simulated ones"
     )

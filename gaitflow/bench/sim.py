@@ -30,8 +30,12 @@ def run(args: argparse.Namespace) -> int:
         cpu = time.process_time() - c
         fps = n / wall
         rows.append([name, n, 1000 * wall / n, fps, n / cpu if cpu > 0 else float("nan")])
-        figures[name] = {"frames": n, "ms_per_frame": 1000 * wall / n, "fps": fps,
-                         "fps_cpu": n / cpu if cpu > 0 else float("nan")}
+        figures[name] = {
+            "frames": n,
+            "ms_per_frame": 1000 * wall / n,
+            "fps": fps,
+            "fps_cpu": n / cpu if cpu > 0 else float("nan"),
+        }
     figures["walk_fps"] = figures["walk-01"]["fps"]
     figures["goal_fps"] = 30.0
     figures["meets_goal"] = figures["walk_fps"] >= 30.0

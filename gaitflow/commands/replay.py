@@ -15,7 +15,7 @@ from gaitflow.commands._bus_args import add_bus_args, bus_config, stop_on_signal
 from gaitflow.commands.record import check_streams
 from gaitflow.errors import ConfigError
 from gaitflow.progress import add_quiet_flag, progress
-from gaitflow.recording import McapReader, RecordedMessage
+from gaitflow.recording import McapReader, RecordedMessage, count_hint
 
 
 def parse_rate(text: str) -> float:
@@ -136,7 +136,9 @@ def run(args: argparse.Namespace) -> int:
                 pub.put(payload)
 
             stop.wait(args.start_delay)
-            bar = progress(desc="replay", unit="msg", quiet=args.quiet)
+            per_pass = count_hint(args.file, streams)
+            total = None if per_pass is None or args.loop else per_pass
+            bar = progress(desc="replay", unit="msg", total=total, quiet=args.quiet)
             try:
                 stats = replay(
                     args.file,

@@ -56,8 +56,17 @@ def preview_strip(tiles: list[tuple[str, np.ndarray, np.ndarray]]) -> np.ndarray
     return np.hstack(cols[:-1])
 
 
-def write_session(ses: Any, out: Path, preview: Path | None = None, log: Any = print) -> dict:
-    """Write every recording with the session writer, the truth files, and a preview."""
+def write_session(
+    ses: Any,
+    out: Path,
+    preview: Path | None = None,
+    log: Any = print,
+    max_frames: int | None = None,
+) -> dict:
+    """Write every recording with the session writer, the truth files, and a preview.
+
+    ``max_frames`` keeps only the first frames of each recording (quick looks, tests).
+    """
     from gaitflow.session import SessionWriter
 
     writer = SessionWriter(out, ses.camera_json)
@@ -80,11 +89,18 @@ def write_session(ses: Any, out: Path, preview: Path | None = None, log: Any = p
                 "knee_flexion_ref",
             )
         }
-        n_total = len(rec)
-        picks = _preview_picks(name, rec) if preview is not None else set()
+        n_total = len(rec) if max_frames is None else min(len(rec), max_frames)
+        picks = _preview_picks(name, rec, max_frames) if preview is not None else set()
 
-        def frames(rec: Any = rec, rows: dict = rows, picks: set = picks, name: str = name):
-            for k, (raw, gt) in enumerate(rec):
+        def frames(
+            rec: Any = rec,
+            rows: dict = rows,
+            picks: set = picks,
+            name: str = name,
+            n_total: int = n_total,
+        ):
+            for k in range(n_total):
+                raw, gt = rec.frame(k, last=k == len(rec) - 1)
                 rows["index"].append(raw.header.frame)
                 rows["timestamp_ns"].append(raw.header.capture_ns)
                 rows["time_s"].append(gt.time_s)
@@ -118,8 +134,8 @@ def write_session(ses: Any, out: Path, preview: Path | None = None, log: Any = p
     return stats
 
 
-def _preview_picks(name: str, rec: Any) -> set[int]:
-    n = len(rec)
+def _preview_picks(name: str, rec: Any, max_frames: int | None) -> set[int]:
+    n = len(rec) if max_frames is None else min(len(rec), max_frames)
     if name == "calibration":
         return {n - 1}
     if name == "static":
@@ -140,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     preview = None
     if args.preview:
         preview = Path(args.preview_path) if args.preview_path else args.out / "preview.png"
-    write_session(ses, args.out, preview)
+    write_session(ses, args.out, preview, max_frames=args.max_frames)
     if args.preview and not args.preview_path:
         print(f"(copy it to {PREVIEW_PATH} for the README)")
     return 0
@@ -161,6 +177,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--walks", type=int, default=1, help="number of walking trials")
     p.add_argument("--quick", action="store_true", help="short calibration and static parts")
+    p.add_argument(
+        "--max-frames", type=int, default=None, help="keep only the first N frames of each"
+    )
     p.add_argument("--preview", action="store_true", help="also write a PNG strip")
     p.add_argument("--preview-path", default=None, help="where to write the preview PNG")
     p.set_defaults(func=run)

@@ -70,6 +70,8 @@ def key_fields(msg: Message) -> list[str]:
             s = f"{f.name}{list(v.shape)}"
             if v.dtype.kind == "f" and v.size:
                 s += f" nan={int(np.isnan(v).sum())}"
+            elif v.dtype.kind in "ui" and v.size:
+                s += f" {int(v.min())}..{int(v.max())}"
             out.append(s)
         elif isinstance(v, list | dict):
             out.append(f"{f.name}=<{len(v)} items>")

@@ -13,7 +13,7 @@ from gaitflow.sim.config import SimConfig
 __all__ = ["SimConfig", "list_trials", "simulate_session"]
 
 
-def simulate_session(*args, **kwargs):  # noqa: ANN002, ANN003
+def simulate_session(*args, **kwargs):
     """See :func:`gaitflow.sim.session.simulate_session`."""
     from gaitflow.sim.session import simulate_session as _sim
 

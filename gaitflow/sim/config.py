@@ -41,7 +41,7 @@ class SimConfig:
     clothes_albedo: float = 0.4
     floor_albedo: float = 0.3
     wall_albedo: float = 0.45
-    marker_gain: float = 3.0  # marker radiance at 2.5 m, in multiples of saturation
+    marker_gain: float = 4.0  # marker radiance at 2.5 m, in multiples of saturation
     vignetting: float = 0.35  # relative IR loss at the image corners
     ir_read_noise: float = 12.0  # counts
     ir_shot_noise: float = 1.5  # variance per count
@@ -54,7 +54,7 @@ class SimConfig:
     edge_jump_mm: float = 80.0  # a neighbour this much farther makes a depth edge
     flying_prob: float = 0.5  # an edge pixel becomes a mixed-depth ("flying") pixel
     edge_invalid_prob: float = 0.25  # an edge pixel becomes invalid (0)
-    hole_coverage: float = 0.35  # marker coverage above which depth is 0
+    hole_coverage: float = 0.25  # marker coverage above which depth is 0
     # Frames.
     drop_prob: float = 0.01
     jitter_ms: float = 0.4

@@ -57,9 +57,7 @@ def frame_times(duration_s: float, fps: float, cfg: SimConfig, seed: int, rec: i
 class Recording:
     """One simulated recording: iterate it for ``(RawFrame, GroundTruth)`` pairs."""
 
-    def __init__(
-        self, session: SimSession, name: str, motion: Any, rec: int, kind: str
-    ) -> None:
+    def __init__(self, session: SimSession, name: str, motion: Any, rec: int, kind: str) -> None:
         self.session, self.name, self.motion, self.rec, self.kind = (
             session,
             name,
@@ -124,9 +122,7 @@ class Recording:
             if self.kind == "walk":
                 wm = self.motion
                 pass_name = (
-                    "out"
-                    if t <= wm.pass_dur
-                    else ("turn" if t < wm.passes[1].t0 else "back")
+                    "out" if t <= wm.pass_dur else ("turn" if t < wm.passes[1].t0 else "back")
                 )
         half = 0.5 / cfg.camera.fps
         events = [
@@ -208,14 +204,14 @@ class SimSession:
         if rec.kind == "walk":
             wm = rec.motion
             events = wm.events()
-            doc["events"] = [
-                {"time_s": float(t), "side": s, "kind": k, "pass": p} for t, s, k, p in events
-            ]
+            doc["events"] = wm.events_detail()
             doc["passes"] = [
                 {
                     "name": p.name,
                     "start_s": float(p.t0),
                     "end_s": float(p.t0 + wm.pass_dur),
+                    "source_start_s": float(p.t0 + p.pre / cfg.speed_factor),
+                    "source_end_s": float(p.t0 + (p.pre + wm.src_dur) / cfg.speed_factor),
                     "direction_world": (p.R @ [1.0, 0, 0]).tolist(),
                     "side_facing_camera": "R" if p.name == "out" else "L",
                 }
@@ -233,7 +229,7 @@ class SimSession:
             }
         if rec.kind == "static":
             m = rec.motion
-            doc["standing_at_world"] = (m.T + [0.0, 0.0, 0.0]).tolist()
+            doc["standing_at_world"] = np.asarray(m.T, dtype=float).tolist()
         return doc
 
     def walks(self) -> list[str]:
@@ -265,17 +261,18 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
         subject={"id": cfg.subject_id},
     )
     ses = SimSession(trial, seed, cfg, cam, renderer, camera_json)
-    walk = WalkMotion(src, body, cfg)
+    # World x of the left and right image edges on the walking line.
+    D = cfg.walk_distance_mm
+    row = round(cam.cy)
+    x_lo = float(renderer.rx[row, 0] * D + D * np.tan(np.radians(cfg.pan_deg)))
+    x_hi = float(renderer.rx[row, -1] * D + D * np.tan(np.radians(cfg.pan_deg)))
+    walk = WalkMotion(src, body, cfg, view_x=(x_lo, x_hi))
     ses.recordings["calibration"] = Recording(
         ses, "calibration", CalibrationMotion(cfg, seed), 0, "calibration"
     )
     # The start point is where the outward pass begins, moved inside the field of view
     # (clinics tape it where the camera sees the whole subject).
     start = walk.start_point()
-    D = cfg.walk_distance_mm
-    row = int(round(cam.cy))
-    x_lo = renderer.rx[row, 0] * D + D * np.tan(np.radians(cfg.pan_deg))
-    x_hi = renderer.rx[row, -1] * D + D * np.tan(np.radians(cfg.pan_deg))
     start[0] = np.clip(start[0], x_lo + 600.0, x_hi - 600.0)
     ses.recordings["static"] = Recording(
         ses, "static", StaticMotion(src, cfg, start, seed), 1, "static"

@@ -52,10 +52,10 @@ def spatiotemporal(
     dict with ``steps`` (one record per foot strike that has a previous contralateral
     strike in the same pass), ``strides``, and ``mean`` per side.
 
-    Step length = distance along the walking direction from the trailing (contralateral)
-    heel to the striking heel at the strike; stride length = distance the same heel moved
-    between consecutive strikes; stance = FS to the next FO of that foot; swing = FO to the
-    next FS of that foot.
+    Step length = distance along the walking direction from the contralateral heel at its
+    previous strike to the striking heel at this strike; stride length = distance the same
+    heel moved between consecutive strikes; stance = FS to the next FO of that foot;
+    swing = FO to the next FS of that foot.
     """
     side_idx = {"L": 0, "R": 1}
     steps, strides = [], []
@@ -75,7 +75,7 @@ def spatiotemporal(
                         "pass": pname,
                         "side": side,
                         "time_s": t,
-                        "length_mm": float(along[s] - along[1 - s]),
+                        "length_mm": float(along[s] - hp[prev_other[-1]][1 - s] @ direction),
                         "time_from_contralateral_s": t - fs[prev_other[-1]][0],
                     }
                 )

@@ -14,6 +14,7 @@ z up, floor at z = 0, mm; time in s from the recording's first frame.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,49 +42,199 @@ def _smooth(s: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Pass:
-    """One straight pass: world = std @ R.T + T, world time t0 + src_time / speed."""
+    """One straight pass: world = std @ R.T + T.
+
+    World time t maps to pass time tau = (t - t0) * speed - pre (s of source time; tau in
+    [0, src_dur] is the source trial itself, before and after it whole gait cycles of the
+    trial are repeated so that the subject walks in from outside the view and out of it).
+    """
 
     t0: float
     R: np.ndarray
     T: np.ndarray
     name: str
+    pre: float
+    post: float
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """A gait cycle of the source (FS to the next FS of one foot) used to extend a pass."""
+
+    start: float
+    period: float
+    shift: np.ndarray  # (3,) std-frame displacement over one cycle
+
+
+def _cycles(trial: Trial, body: Body) -> tuple[Cycle, Cycle] | None:
+    """The first and last full gait cycles of the trial (from its labelled foot strikes)."""
+    k = SEGMENT_INDEX["pelvis"]
+    pelvis = 0.5 * (body.cap_a[:, k] + body.cap_b[:, k])
+    found = []
+    for side in ("L", "R"):
+        fs = [e[0] for e in trial.events if e[1] == side and e[2] == "FS"]
+        for t0, t1 in itertools.pairwise(fs):
+            if 0.6 < t1 - t0 < 2.5:
+                found.append((t0, t1))
+    if not found:
+        # Fewer than two strikes of one foot: take the period from the heels' height
+        # (autocorrelation), starting at the first labelled strike.
+        period = _period(body)
+        if period is None:
+            return None
+        fs = [e[0] for e in trial.events if e[2] == "FS"] or [0.0]
+        t0 = fs[0] if fs[0] + period <= body.t[-1] else 0.0
+        if t0 + period > body.t[-1]:
+            return None
+        found = [(t0, t0 + period)]
+
+    def make(t0: float, t1: float) -> Cycle:
+        p0 = np.array([np.interp(t0, body.t, pelvis[:, i]) for i in range(3)])
+        p1 = np.array([np.interp(t1, body.t, pelvis[:, i]) for i in range(3)])
+        shift = p1 - p0
+        shift[2] = 0.0
+        return Cycle(t0, t1 - t0, shift)
+
+    found.sort()
+    first = make(*found[0])
+    last = make(*max(found, key=lambda c: c[1]))
+    return first, last
+
+
+def _cycle_phases(events: list[tuple[float, str, str]], cyc: Cycle) -> list[tuple[str, str, float]]:
+    """One (side, kind, time) per side and kind (each happens once a cycle), in the window.
+
+    The event labelled nearest to the cycle window [start, start + period) is used, moved
+    into the window by whole periods.
+    """
+    end = cyc.start + cyc.period
+
+    def outside(t: float) -> float:
+        return max(cyc.start - t, t - end, 0.0)
+
+    kept: dict[tuple[str, str], float] = {}
+    for tt, side, kind in sorted(events, key=lambda e: outside(e[0])):
+        if (side, kind) not in kept:
+            kept[(side, kind)] = cyc.start + (tt - cyc.start) % cyc.period
+    return [(side, kind, ph) for (side, kind), ph in kept.items()]
+
+
+def _period(body: Body) -> float | None:
+    """Gait period (s) from the autocorrelation of the heels' height difference."""
+    from gaitflow.markers import MARKER_INDEX
+
+    z = body.markers[:, MARKER_INDEX["L_HEE"], 2] - body.markers[:, MARKER_INDEX["R_HEE"], 2]
+    z = z - z.mean()
+    dt = float(np.median(np.diff(body.t)))
+    lags = np.arange(int(0.7 / dt), min(int(1.8 / dt), len(z) - int(0.3 / dt)))
+    if len(lags) == 0:
+        return None
+    score = [
+        np.dot(z[:-lag], z[lag:]) / np.sqrt(np.dot(z[:-lag], z[:-lag]) * np.dot(z[lag:], z[lag:]))
+        for lag in lags
+    ]
+    best = int(np.argmax(score))
+    if score[best] < 0.5:
+        return None
+    return float(lags[best] * dt)
 
 
 class WalkMotion:
-    """A trial's pass, a turn, and its rotated return."""
+    """A trial's pass, a turn, and its rotated return, each pass crossing the whole view.
 
-    def __init__(self, trial: Trial, body: Body, cfg: SimConfig) -> None:
+    Parameters
+    ----------
+    trial, body : the source trial and its posed body (standard frame).
+    cfg : simulator configuration.
+    view_x : (x_left, x_right) world x (mm) of the image edges on the walking line. Each
+        pass is extended with repeated gait cycles until the subject starts and ends
+        ``margin_mm`` outside them.
+    """
+
+    BLEND_S = 0.15  # cross-fade between the source and its repeated cycles
+
+    def __init__(
+        self,
+        trial: Trial,
+        body: Body,
+        cfg: SimConfig,
+        view_x: tuple[float, float] | None = None,
+        margin_mm: float = 500.0,
+    ) -> None:
         self.trial, self.body, self.cfg = trial, body, cfg
         speed = cfg.speed_factor
         self.src_dur = float(body.t[-1])
-        self.pass_dur = self.src_dur / speed
-        pelvis = body.cap_a[:, SEGMENT_INDEX["pelvis"]] + body.cap_b[:, SEGMENT_INDEX["pelvis"]]
-        pelvis = 0.5 * pelvis
+        k = SEGMENT_INDEX["pelvis"]
+        pelvis = 0.5 * (body.cap_a[:, k] + body.cap_b[:, k])
         x_mid = 0.5 * (pelvis[0, 0] + pelvis[-1, 0])
         y_mean = float(pelvis[:, 1].mean())
-        # Centre the pass on the optical axis's crossing of the walking line.
-        x_view = cfg.walk_distance_mm * np.tan(np.radians(cfg.pan_deg))
         D = cfg.walk_distance_mm
-        out = Pass(0.0, np.eye(3), np.array([x_view - x_mid, D - y_mean, 0.0]), "out")
-        R2 = rot_z(np.pi)
+        # Centre the source pass on the optical axis's crossing of the walking line.
+        x_view = D * np.tan(np.radians(cfg.pan_deg))
+        self.cycles = _cycles(trial, body)
+        half = 0.5 * (pelvis[-1, 0] - pelvis[0, 0])
+        pre = post = 0.0
+        if view_x is not None and self.cycles is not None:
+            v = np.linalg.norm(self.cycles[0].shift) / self.cycles[0].period
+            v_end = np.linalg.norm(self.cycles[1].shift) / self.cycles[1].period
+            need_left = (x_view - half) - (view_x[0] - margin_mm)
+            need_right = (view_x[1] + margin_mm) - (x_view + half)
+            pre = max(0.0, need_left / v, need_right / v)
+            post = max(0.0, need_right / v_end, need_left / v_end)
+        self.pass_src = pre + self.src_dur + post
+        self.pass_dur = self.pass_src / speed
+        out = Pass(0.0, np.eye(3), np.array([x_view - x_mid, D - y_mean, 0.0]), "out", pre, post)
         ret = Pass(
-            self.pass_dur + cfg.turn_s, R2, np.array([x_view + x_mid, D + y_mean, 0.0]), "back"
+            self.pass_dur + cfg.turn_s,
+            rot_z(np.pi),
+            np.array([x_view + x_mid, D + y_mean, 0.0]),
+            "back",
+            pre,
+            post,
         )
         self.passes = (out, ret)
         self.duration_s = 2 * self.pass_dur + cfg.turn_s
         self.albedo = _albedo(body, cfg)
 
-    def _posed(self, p: Pass, t_src: np.ndarray):
-        m, a, b = self.body.at(t_src)
+    # ------------------------------------------------------------------ pass-local pose
+    def _std(self, tau: np.ndarray):
+        """Markers and capsule ends in the standard frame at pass times tau (K,)."""
+        tau = np.asarray(tau, dtype=np.float64)
+        m, a, b = self.body.at(np.clip(tau, 0.0, self.src_dur))
+        if self.cycles is None:
+            return m, a, b
+        blend = self.BLEND_S
+        c0, c1 = self.cycles
+        w_pre = np.clip(1.0 - tau / blend, 0.0, 1.0)
+        w_post = np.clip((tau - (self.src_dur - blend)) / blend, 0.0, 1.0)
+        for cyc, w in ((c0, w_pre), (c1, w_post)):
+            if not (w > 0).any():
+                continue
+            n = np.floor((tau - cyc.start) / cyc.period)
+            src = cyc.start + (tau - cyc.start) - n * cyc.period
+            mc, ac, bc = self.body.at(src)
+            sh = (n[:, None] * cyc.shift)[:, None, :]
+            ww = w[:, None, None]
+            m = (1 - ww) * m + ww * (mc + sh)
+            a = (1 - ww) * a + ww * (ac + sh)
+            b = (1 - ww) * b + ww * (bc + sh)
+        return m, a, b
+
+    def _posed(self, p: Pass, tau: np.ndarray):
+        m, a, b = self._std(tau)
         return m @ p.R.T + p.T, a @ p.R.T + p.T, b @ p.R.T + p.T
+
+    def _tau(self, p: Pass, t: np.ndarray) -> np.ndarray:
+        return (np.asarray(t, dtype=np.float64) - p.t0) * self.cfg.speed_factor - p.pre
 
     def markers_caps(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Markers (K, 20, 3) and capsule ends (K, S, 3) x2 in world mm at times t (K,)."""
         t = np.asarray(t, dtype=np.float64)
-        speed = self.cfg.speed_factor
         out_p, back_p = self.passes
-        m1, a1, b1 = self._posed(out_p, np.clip(t, 0, self.pass_dur) * speed)
-        m2, a2, b2 = self._posed(back_p, np.clip(t - back_p.t0, 0, self.pass_dur) * speed)
+        t1 = np.clip(t, 0, self.pass_dur)
+        t2 = np.clip(t, back_p.t0, back_p.t0 + self.pass_dur)
+        m1, a1, b1 = self._posed(out_p, self._tau(out_p, t1))
+        m2, a2, b2 = self._posed(back_p, self._tau(back_p, t2))
         in_turn = (t > self.pass_dur) & (t < back_p.t0)
         first = (t <= self.pass_dur)[:, None, None]
         m, a, b = (np.where(first, x, y) for x, y in ((m1, m2), (a1, a2), (b1, b2)))
@@ -96,12 +247,12 @@ class WalkMotion:
     def _turn(self, s: np.ndarray):
         """Blend the last outward pose into the first return pose while turning 180 deg."""
         out_p, back_p = self.passes
-        end = [x[0] for x in self._posed(out_p, np.array([self.src_dur]))]
-        start = [x[0] for x in self._posed(back_p, np.array([0.0]))]
-        c0 = end[1][SEGMENT_INDEX["pelvis"]] * 0.5 + end[2][SEGMENT_INDEX["pelvis"]] * 0.5
-        c1 = start[1][SEGMENT_INDEX["pelvis"]] * 0.5 + start[2][SEGMENT_INDEX["pelvis"]] * 0.5
-        c0 = c0 * [1, 1, 0]
-        c1 = c1 * [1, 1, 0]
+        end = [x[0] for x in self._posed(out_p, np.array([self.src_dur + out_p.post]))]
+        start = [x[0] for x in self._posed(back_p, np.array([-back_p.pre]))]
+        k = SEGMENT_INDEX["pelvis"]
+        flat = np.array([1.0, 1.0, 0.0])
+        c0 = 0.5 * (end[1][k] + end[2][k]) * flat
+        c1 = 0.5 * (start[1][k] + start[2][k]) * flat
         R1inv = rot_z(-np.pi)
         res = []
         for e, st in zip(end, start, strict=True):
@@ -122,27 +273,77 @@ class WalkMotion:
         _, a, b = self.markers_caps(np.array([t_mid]))
         return FramePose(m, a[0], b[0], self.body.radius, self.albedo)
 
-    def events(self) -> list[tuple[float, str, str, str]]:
-        """Source events mapped onto the composed walk: (time_s, side, kind, pass)."""
+    # ------------------------------------------------------------------ ground truth
+    def events_detail(self) -> list[dict]:
+        """Labelled events on the composed walk, both passes.
+
+        Events of the source trial keep their labelled time. Where no event is labelled
+        (the repeated cycles before and after the source, and unlabelled stretches of the
+        source), copies of the labelled events at the same gait phase are added
+        (``copied`` True). Times in s from the recording's first frame.
+        """
+        speed = self.cfg.speed_factor
         out = []
         for p in self.passes:
             for tt, side, kind in self.trial.events:
-                out.append((p.t0 + tt / self.cfg.speed_factor, side, kind, p.name))
-        return sorted(out)
+                out.append((tt, side, kind, p, False))
+            if self.cycles is None:
+                continue
+            mid = 0.5 * self.src_dur
+            for cyc, lo, hi in (
+                (self.cycles[0], -p.pre, mid),
+                (self.cycles[1], mid, self.src_dur + p.post),
+            ):
+                for side, kind, ph in _cycle_phases(self.trial.events, cyc):
+                    n0 = int(np.floor((lo - ph) / cyc.period))
+                    for n in range(n0, n0 + int((hi - lo) / cyc.period) + 3):
+                        tau = ph + n * cyc.period
+                        if not lo <= tau < hi:
+                            continue
+                        # Inside the source span only where the source left it unlabelled.
+                        near = [
+                            e
+                            for e in self.trial.events
+                            if e[1] == side and e[2] == kind and abs(e[0] - tau) < 0.4 * cyc.period
+                        ]
+                        if not near:
+                            out.append((tau, side, kind, p, True))
+        res = [
+            {
+                "time_s": float(p.t0 + (tau + p.pre) / speed),
+                "side": side,
+                "kind": kind,
+                "pass": p.name,
+                "copied": copied,
+            }
+            for tau, side, kind, p, copied in out
+        ]
+        return sorted(res, key=lambda e: e["time_s"])
+
+    def events(self) -> list[tuple[float, str, str, str]]:
+        """(time_s, side, kind, pass) of every event, source and copied."""
+        return [(e["time_s"], e["side"], e["kind"], e["pass"]) for e in self.events_detail()]
 
     def knee_ref(self, t: np.ndarray) -> np.ndarray:
-        """Source Plug-in Gait knee flexion (K, 2) at times t, NaN in the turn."""
+        """Source Plug-in Gait knee flexion (K, 2) at times t, NaN in the turn.
+
+        In the repeated cycles it is the value at the corresponding source time.
+        """
         t = np.asarray(t, dtype=np.float64)
         out = np.full((len(t), 2), np.nan)
         for p in self.passes:
-            ts = (t - p.t0) * self.cfg.speed_factor
-            ok = (ts >= 0) & (ts <= self.src_dur)
+            ts = self._tau(p, t)
+            if self.cycles is not None:
+                for cyc, sel in ((self.cycles[0], ts < 0), (self.cycles[1], ts > self.src_dur)):
+                    n = np.floor((ts[sel] - cyc.start) / cyc.period)
+                    ts[sel] = ts[sel] - n * cyc.period
+            ok = (ts >= 0) & (ts <= self.src_dur) & (t >= p.t0) & (t <= p.t0 + self.pass_dur)
             for k in range(2):
                 out[ok, k] = np.interp(ts[ok], self.trial.t, self.trial.knee_ref[:, k])
         return out
 
     def start_point(self) -> np.ndarray:
-        """World position (3,) of the pelvis at the start of the outward pass."""
+        """World position (3,) of the pelvis where the source trial's outward pass begins."""
         _, a, b = self._posed(self.passes[0], np.array([0.0]))
         k = SEGMENT_INDEX["pelvis"]
         return 0.5 * (a[0, k] + b[0, k])
@@ -289,8 +490,8 @@ class CalibrationMotion:
             target + np.array([0.0, 30.0, 40.0])
         )
         elbow = 0.5 * (shoulder + hand) + np.array([0.0, 80.0, 40.0])
-        a = np.array([*legs_a, pelvis, shoulder, elbow, chest + [0, 0, 330]])
-        b = np.array([*legs_b, chest, elbow, hand, chest + [0, 0, 360]])
+        a = np.array([*legs_a, pelvis, shoulder, elbow, chest + np.array([0.0, 0.0, 330.0])])
+        b = np.array([*legs_b, chest, elbow, hand, chest + np.array([0.0, 0.0, 360.0])])
         r = np.array([50.0, 60.0, 50.0, 60.0, 130.0, 45.0, 38.0, 95.0])
         return a, b, r
 

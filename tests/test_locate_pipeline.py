@@ -1,0 +1,100 @@
+"""clean -> detect -> locate wired through the pipeline graph, and the mocap bench scoring."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gaitflow.schemas import CalibrationRecord, GroundTruth, Markers3D, RawFrame
+from gaitflow.stages.graph import load
+from gaitflow.stages.inline import run_inline
+
+from gaitflow.bench import mocap
+
+H, W = 212, 256
+MARKERS = [(60.3, 50.6), (120.7, 90.2), (180.4, 150.8)]
+
+
+def raw(k: int, trial: str = "walk-01") -> RawFrame:
+    rng = np.random.default_rng(k)
+    ir = rng.normal(900.0, 20.0, (H, W))
+    depth = rng.normal(2600.0, 3.0, (H, W))
+    rr, cc = np.mgrid[0:H, 0:W]
+    for u, v in MARKERS:
+        r = np.hypot(cc - u, rr - v)
+        ir[r <= 2.5] = 65535
+        depth[r <= 2.5] = 0
+    return RawFrame(
+        header=RawFrame.make_header("cam0", trial, k, k * 33_333_333, last=k == 2),
+        ir=np.clip(ir, 0, 65535).astype(np.uint16),
+        depth=depth.astype(np.uint16),
+    )
+
+
+def calibration() -> CalibrationRecord:
+    return CalibrationRecord(
+        header=CalibrationRecord.make_header("cam0", "calibration", 50, 0, last=True),
+        floor_pixels=np.zeros((0, 2)),
+        floor_points=np.zeros((0, 3)),
+        floor_plane=np.array([0.0, -1.0, 0.0, 800.0]),
+        start=np.zeros(3),
+        end=np.zeros(3),
+        status="Done",
+        w=20000.0,
+        r_b=2.5,
+    )
+
+
+def test_graph_runs_clean_detect_locate() -> None:
+    graph = load()
+    # Frames arrive before the calibration record: they are held, then released in order.
+    msgs = [raw(0), raw(1), calibration(), raw(2)]
+    out = run_inline(graph, msgs, stages=["clean", "detect", "locate"], params={"detect": {"n": 3}})
+    markers = out["markers"]
+    assert [m.header.frame for m in markers] == [0, 1, 2]
+    m = markers[-1]
+    assert isinstance(m, Markers3D) and m.header.last
+    assert m.centroid.shape == (3, 2)
+    for u, v in MARKERS:
+        assert np.min(np.hypot(m.centroid[:, 0] - u, m.centroid[:, 1] - v)) < 0.1
+    # Plane at 2600 mm; the published point is the marker centre, 12.5 mm nearer.
+    assert np.all(np.abs(m.depth[:, 0] - (2600.0 - 12.5)) < 3.0)
+
+
+def test_bench_scoring_on_literal_messages() -> None:
+    truth_px = np.full((20, 2), np.nan)
+    truth_px[:3] = [[10.0, 10.0], [50.0, 50.0], [52.0, 50.0]]  # the last two merge
+    visible = np.zeros(20, bool)
+    visible[:3] = True
+    pos = np.full((20, 3), np.nan)
+    pos[:3] = [[0, 0, 2500.0], [100, 0, 2500.0], [105, 0, 2500.0]]
+    h = GroundTruth.make_header("cam0", "walk-01", 0, 0)
+    gt = GroundTruth(
+        header=h,
+        position=pos,
+        pixel=truth_px,
+        visible=visible,
+        occluded=np.zeros(20, bool),
+        knee_flexion=np.zeros(2),
+    )
+    cen = np.array([[10.3, 10.0], [51.0, 50.0], [200.0, 200.0]])
+    p3 = np.zeros((3, 3, 3))
+    p3[0, :] = [0, 0, 2504.0]
+    p3[1, :] = [100, 0, 2510.0]
+    mk = Markers3D.follow(
+        h,
+        centroid=cen,
+        marker_radius=np.ones(3),
+        region_radius=np.ones(3),
+        depth=p3[:, :, 2],
+        position=p3,
+    )
+    s = mocap.Score()
+    mocap.score_frame(s, mk, gt, gate=4.0)
+    r = mocap.summarise(s)
+    assert r["visible"] == 3
+    assert r["detected"] == pytest.approx(200 / 3)
+    assert r["recall@0.5"] == pytest.approx(100 / 3)
+    assert r["recall@1.5"] == pytest.approx(200 / 3)
+    assert r["missed_merged"] == pytest.approx(100 / 3)
+    assert r["false_blobs_per_frame"] == 1
+    assert sorted(s.errors) == pytest.approx([4.0, 10.0])
