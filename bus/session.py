@@ -105,6 +105,7 @@ class Bus:
         if shm == "on":
             self._shm = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
         self.callback_errors = 0
+        self.shm_fallbacks = 0
         self._closed = False
 
     @property
@@ -112,15 +113,17 @@ class Bus:
         return self.cfg.site
 
     def _zbytes(self, payload: bytes | bytearray | memoryview) -> Any:
+        data = payload if isinstance(payload, bytes | bytearray) else bytes(payload)
         if self._shm is None:
-            return payload if isinstance(payload, bytes | bytearray) else bytes(payload)
+            return data
         shm = self._zenoh.shm
-        n = len(payload)
-        buf = self._shm.alloc(
-            n,
-            shm.GarbageCollect(shm.Defragment(shm.BlockOn()), shm.BlockOn()),
-        )
-        buf[0:n] = payload if isinstance(payload, bytes | bytearray) else bytes(payload)
+        try:
+            # Reclaim buffers subscribers have released; never block the publisher here.
+            buf = self._shm.alloc(len(data), shm.GarbageCollect())
+        except self._zenoh.ZError:
+            self.shm_fallbacks += 1  # pool exhausted: this payload goes by the socket
+            return data
+        buf[0 : len(data)] = data
         return buf
 
     def publisher(

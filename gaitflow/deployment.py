@@ -54,6 +54,17 @@ ROLE_FILES = ("all-in-one", "edge", "server")
 # seconds between attempts, so after a router restart stages could stay away longer than
 # the 5 s the deployment promises; retry every 0.25-1 s instead.
 RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+# Between machines a pulled cable sends no FIN: Zenoh notices through its lease (default
+# 10 s). A 3 s lease notices sooner; the uplink resends what it sent in the last
+# lease + 2 s when the link drops, so nothing in flight is lost.
+LINK_LEASE_MS = 3000
+# How long a stage waits for a missing frame index before skipping it. The runtime's
+# default (0.25 s) is for replicated stages whose outputs interleave; in these roles each
+# stream has one producer and Zenoh keeps a publisher's order (the edge ring keeps it
+# across link drops), so a gap is a frame that will not come (e.g. no markers found).
+# Waiting 0.25 s for it at each of label and gait stalled the next frames by ~0.5 s
+# (`gaitflow bench pipeline`); 20 ms keeps a missing frame within the 33 ms budget.
+REORDER_TIMEOUT_S = 0.02
 # Streams that never leave the edge: simulator ground truth is for evaluation only.
 EDGE_ONLY_STREAMS = ("truth",)
 
@@ -71,6 +82,8 @@ class Topology:
         sends traffic off the machine; set the real address when rendering for a clinic.
     server_tls_port : the router's TLS listener for edges.
     local_port : the loopback router port of each machine's own stages.
+    edge_local_port : the edges' loopback router port, if not ``local_port`` (lets an edge
+        and the server share one host in tests).
     tls_listen_address : where the server's TLS listener binds (default: server_address).
     locate_on : ``edge`` or ``server`` (``locate`` is the one stage that may move).
     metrics_host : metrics endpoints bind here.
@@ -87,6 +100,7 @@ class Topology:
     server_address: str = "127.0.0.1"
     server_tls_port: int = 7448
     local_port: int = 7447
+    edge_local_port: int | None = None
     tls_listen_address: str | None = None
     locate_on: str = "edge"
     metrics_host: str = "127.0.0.1"
@@ -109,6 +123,10 @@ class Topology:
     @property
     def local_endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.local_port}"
+
+    @property
+    def edge_local_endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.edge_local_port or self.local_port}"
 
     @property
     def server_tls_endpoint(self) -> str:
@@ -152,6 +170,12 @@ def _bus(connect: str, site: str, tls: Mapping[str, Any] | None = None) -> dict[
     }
     if tls:
         doc["tls"] = dict(tls)
+    return doc
+
+
+def _uplink_bus(topo: Topology, machine: str) -> dict[str, Any]:
+    doc = _bus(topo.server_tls_endpoint, topo.site, _tls(topo, machine))
+    doc["extra"]["transport/link/tx/lease"] = LINK_LEASE_MS
     return doc
 
 
@@ -241,11 +265,11 @@ def render_edge(graph: Graph, topo: Topology, machine: str) -> dict[str, Any]:
         "machine": machine,
         "camera": camera,
         "site": topo.site,
-        "bus": _bus(topo.local_endpoint, topo.site),
-        "router": {"listen": [topo.local_endpoint]},
+        "bus": _bus(topo.edge_local_endpoint, topo.site),
+        "router": {"listen": [topo.edge_local_endpoint]},
         "stages": _stage_entries(nodes, camera, topo),
         "uplink": {
-            "bus": _bus(topo.server_tls_endpoint, topo.site, _tls(topo, machine)),
+            "bus": _uplink_bus(topo, machine),
             "streams": edge_streams(graph, topo),
             "server_token": router_token_key(topo.site, topo.server_machine),
             "token": uplink_token_key(topo.site, camera),
@@ -253,7 +277,7 @@ def render_edge(graph: Graph, topo: Topology, machine: str) -> dict[str, Any]:
                 "dir": f"{topo.state_dir}/ring/{camera}",
                 "max_bytes": topo.ring_max_bytes,
                 "segment_messages": 256,
-                "resend_margin_s": 2.0,
+                "resend_margin_s": LINK_LEASE_MS / 1000 + 2.0,
             },
         },
         "watch": _watch(topo),
@@ -281,6 +305,7 @@ def render_server(graph: Graph, topo: Topology) -> dict[str, Any]:
             "tls": _tls(topo, topo.server_machine),
             "token": router_token_key(topo.site, topo.server_machine),
             "access_control": acl,
+            "extra": {"transport/link/tx/lease": LINK_LEASE_MS},
         },
         "stages": _stage_entries(nodes, "*", topo),
         "recorder": {
@@ -307,7 +332,11 @@ def stage_config(role: Mapping[str, Any]) -> dict[str, Any]:
     host = role["watch"]["metrics_host"]
     return {
         "bus": dict(role["bus"]),
-        "runtime": {"camera": camera, "metrics_host": host},
+        "runtime": {
+            "camera": camera,
+            "metrics_host": host,
+            "reorder_timeout_s": REORDER_TIMEOUT_S,
+        },
     }
 
 

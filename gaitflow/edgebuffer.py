@@ -279,6 +279,7 @@ class Uplink:
         # (monotonic send time, seq) of recent sends, for the rewind on a drop.
         self._sent_times: deque[tuple[float, int]] = deque()
         self._remote: Any = None
+        self._max_sent = -1
         self._subs: list[Any] = []
         self._thread: threading.Thread | None = None
 
@@ -314,8 +315,10 @@ class Uplink:
             since = time.monotonic() - self.resend_margin_s
             times = [t for t, _ in self._sent_times]
             i = bisect.bisect_left(times, since)
+            target = self._cursor
             if i < len(self._sent_times):
-                self._rewind_to = self._sent_times[i][1]
+                target = min(target, self._sent_times[i][1])
+            self._rewind_to = target
             self._sent_times.clear()
         log.warning("uplink %s: server link down; recording to the ring", self.camera)
 
@@ -349,7 +352,7 @@ class Uplink:
                 continue
             with self._lock:
                 if self._rewind_to is not None:
-                    self.stats.resent += max(0, self._cursor - self._rewind_to)
+                    self.stats.resent += max(0, self._max_sent + 1 - self._rewind_to)
                     self._cursor = max(self._rewind_to, self.ring.first_seq)
                     self._rewind_to = None
             if not self.ring.wait(self._cursor, 0.1):
@@ -366,20 +369,30 @@ class Uplink:
                 if seq > self._cursor:
                     # Evicted before it could be sent: counted, never silent.
                     self.stats.evicted_unsent += seq - self._cursor
-                try:
-                    self._remote.put(key, payload)
-                except Exception as exc:  # noqa: BLE001 - any transport failure = link down
+                # The cursor names the frame in flight, so a drop noticed meanwhile
+                # rewinds to it at the latest.
+                self._cursor = seq
+            # Not under the lock: a put may block on a dying link until Zenoh closes it,
+            # and the liveliness callback that marks the link down must not wait for it.
+            try:
+                self._remote.put(key, payload)
+            except Exception as exc:  # noqa: BLE001 - any transport failure = link down
+                with self._lock:
                     self.stats.send_errors += 1
-                    log.warning("uplink %s: send failed: %s", self.camera, exc)
                     self._up.clear()
                     self._rewind_to = seq
-                    return
-                self._cursor = seq + 1
+                log.warning("uplink %s: send failed: %s", self.camera, exc)
+                return
+            with self._lock:
                 self.stats.sent += 1
+                self._max_sent = max(self._max_sent, seq)
                 now = time.monotonic()
                 self._sent_times.append((now, seq))
                 while self._sent_times and now - self._sent_times[0][0] > self.resend_margin_s:
                     self._sent_times.popleft()
+                if self._rewind_to is not None:
+                    return
+                self._cursor = seq + 1
 
     def drain(self, timeout: float) -> bool:
         """Wait until everything in the ring was sent (True) or ``timeout`` passed."""
@@ -422,7 +435,7 @@ def _wait_signal(stop: threading.Event) -> dict[int, Any]:
 def router_config(role: dict[str, Any]) -> tuple[BusConfig, tuple[str, ...]]:
     """The router BusConfig and listen endpoints of a role config."""
     r = role.get("router") or {}
-    extra: list[tuple[str, Any]] = []
+    extra: list[tuple[str, Any]] = [(str(k), v) for k, v in (r.get("extra") or {}).items()]
     if r.get("access_control"):
         extra.append(("access_control", r["access_control"]))
     cfg = BusConfig(site=str(role.get("site", "clinic")), tls=dict(r.get("tls") or {}))

@@ -136,6 +136,7 @@ def synthetic_walk(
     occlude: dict[int, list[str]] | None = None,
     trial: str = "walk-01",
     static: bool = False,
+    facing: int = 1,
 ) -> Walk:
     """Out (right side to the camera) and back (left side), with two static strays.
 
@@ -148,13 +149,15 @@ def synthetic_walk(
     occlude : frame index -> marker names hidden in that frame (e.g. an arm over R_HIP).
     trial : trial name of the messages.
     static : a standing pose (the static trial) instead of a walk.
+    facing : for ``static``, the way the subject faces (+1: toward +a, right side near).
     """
     rng = np.random.default_rng(seed)
     cam = Camera()
     occlude = occlude or {}
     strays = np.array([[500.0, 1500.0, 1300.0], [3500.0, 900.0, 300.0]])
     frames, truth, nears = [], [], []
-    passes = [("R", 1)] if static else [("R", 1), ("L", -1)]
+    one = [("R", 1)] if facing > 0 else [("L", -1)]
+    passes = one if static else [("R", 1), ("L", -1)]
     k = 0
     speed = 0.0 if static else 1200.0
     for pi, (near, direction) in enumerate(passes):
@@ -184,8 +187,11 @@ def synthetic_walk(
             pos = np.repeat(cam_pts[:, None, :], 3, axis=1)
             n = len(pts)
             hdr = Markers3D.make_header(
-                "cam0", trial, k, int(k * 1e9 / 30), last=(pi == len(passes) - 1)
-                and j == frames_per_pass - 1
+                "cam0",
+                trial,
+                k,
+                int(k * 1e9 / 30),
+                last=(pi == len(passes) - 1) and j == frames_per_pass - 1,
             )
             frames.append(
                 Markers3D(

@@ -30,6 +30,7 @@ frames this is exactly the recommended ``P1 = x_i + (x_{i+1} - x_{i-1}) / 6``. E
 from __future__ import annotations
 
 import itertools
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -143,19 +144,19 @@ def resample(t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0) -> tuple[np.n
     miss = missing_rows(xs)
     # tangents: central difference where both neighbours are seen, else one-sided
     m = np.full_like(xs, np.nan)
-    for i in range(n):
-        if miss[i]:
-            continue
-        prev_ok = i > 0 and not miss[i - 1]
-        next_ok = i < n - 1 and not miss[i + 1]
-        if prev_ok and next_ok:
-            m[i] = (xs[i + 1] - xs[i - 1]) / (t[i + 1] - t[i - 1])
-        elif next_ok:
-            m[i] = (xs[i + 1] - xs[i]) / (t[i + 1] - t[i])
-        elif prev_ok:
-            m[i] = (xs[i] - xs[i - 1]) / (t[i] - t[i - 1])
-        else:
-            m[i] = 0.0
+    ok = ~miss
+    prev_ok = np.r_[False, ok[:-1]] & ok
+    next_ok = np.r_[ok[1:], False] & ok
+    i = np.arange(n)
+    ip, inx = np.maximum(i - 1, 0), np.minimum(i + 1, n - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        central = (xs[inx] - xs[ip]) / (t[inx] - t[ip])[:, None]
+        forward = (xs[inx] - xs) / (t[inx] - t)[:, None]
+        backward = (xs - xs[ip]) / (t - t[ip])[:, None]
+    m[prev_ok & next_ok] = central[prev_ok & next_ok]
+    m[next_ok & ~prev_ok] = forward[next_ok & ~prev_ok]
+    m[prev_ok & ~next_ok] = backward[prev_ok & ~next_ok]
+    m[ok & ~prev_ok & ~next_ok] = 0.0
     seg = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, n - 2)
     h = t[seg + 1] - t[seg]
     s = (tq - t[seg]) / h
@@ -171,6 +172,110 @@ def resample(t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0) -> tuple[np.n
     bad = (miss[seg] | miss[seg + 1]) & ~exact
     xq[bad] = np.nan
     return tq, (xq[:, 0] if flat else xq)
+
+
+def local_linear(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
+    """A least-squares line through the seen samples within ``window_s`` / 2 of each time,
+    evaluated there (a NaN-aware, first-order Savitzky-Golay smoother on timestamps).
+
+    t : (N,) s; x : (N,) with NaN = missing. Returns (N,), NaN where fewer than 3 samples or
+    a missing input sample (a gap is not filled here).
+    """
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    ok = np.isfinite(x)
+    if len(t) == 0:
+        return np.zeros(0)
+    tc = t - t[0]
+    w = ok.astype(float)
+    xv = np.where(ok, x, 0.0)
+    tw = np.where(ok, tc, 0.0)
+
+    def csum(a: np.ndarray) -> np.ndarray:
+        return np.concatenate(([0.0], np.cumsum(a)))
+
+    S0, St, Sx, Stt, Stx = csum(w), csum(tw), csum(xv), csum(tw * tc), csum(tw * xv)
+    lo = np.searchsorted(t, t - window_s / 2 - 1e-9, side="left")
+    hi = np.searchsorted(t, t + window_s / 2 + 1e-9, side="right")
+    n0 = S0[hi] - S0[lo]
+    st, sx = St[hi] - St[lo], Sx[hi] - Sx[lo]
+    stt, stx = Stt[hi] - Stt[lo], Stx[hi] - Stx[lo]
+    den = n0 * stt - st * st
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = np.where(den > 1e-12, (n0 * stx - st * sx) / den, 0.0)
+        mean_t, mean_x = st / n0, sx / n0
+        out = mean_x + slope * (tc - mean_t)
+    out[(n0 < 3) | ~ok] = np.nan
+    return out
+
+
+def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) -> np.ndarray:
+    """Mark as missing the samples that jump away from their neighbours (a Hampel filter).
+
+    A wrongly labelled marker in one or two frames (another marker's blob given this name)
+    sits far from the median of the samples around it, while smooth motion stays close to
+    it. Each sample is compared with the component-wise median of its ``half`` neighbours on
+    each side (the sample itself excluded); beyond ``max_dev_mm`` it becomes NaN, for the gap
+    filler. ``max_dev_mm <= 0`` returns the input.
+
+    pos : (F, M, 3) mm, NaN = missing. Returns (F, M, 3).
+    """
+    pos = np.asarray(pos, dtype=float)
+    out = pos.copy()
+    n = len(pos)
+    if max_dev_mm <= 0 or n < 3:
+        return out
+    pad = np.full((half, *pos.shape[1:]), np.nan)
+    padded = np.concatenate([pad, pos, pad])
+    neigh = np.stack(
+        [padded[half + o : half + o + n] for o in range(-half, half + 1) if o != 0], axis=0
+    )  # (2 half, F, M, 3)
+    seen = np.isfinite(neigh).all(axis=-1)  # (2 half, F, M)
+    enough = seen.sum(axis=0) >= 2
+    med = np.full(pos.shape, np.nan)
+    if enough.any():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices where not enough
+            med = np.nanmedian(np.where(seen[..., None], neigh, np.nan), axis=0)
+    dev = np.linalg.norm(pos - med, axis=-1)
+    bad = enough & np.isfinite(dev) & (dev > max_dev_mm)
+    out[bad] = np.nan
+    return out
+
+
+def segment_outliers(a: np.ndarray, b: np.ndarray, tol: float = 0.15) -> np.ndarray:
+    """Samples where the distance |a - b| of two markers on one rigid segment departs from
+    its median over the series by more than ``tol`` (relative). (F, 3) x2 -> (F,) bool."""
+    d = np.linalg.norm(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), axis=-1)
+    ok = np.isfinite(d)
+    if ok.sum() < 3:
+        return np.zeros(len(d), dtype=bool)
+    ref = float(np.median(d[ok]))
+    return ok & (np.abs(d - ref) > tol * ref)
+
+
+def smooth_depth(t: np.ndarray, pos: np.ndarray, window_s: float) -> np.ndarray:
+    """Move each marker along its viewing ray to a smoothed depth (departure, see below).
+
+    In a side view the depth (Z) of a marker changes slowly (it is the body's lateral axis)
+    while the ToF depth noise of Alg. 3 is large; the pixel (u, v) is precise. Each position
+    p = Z (x_n, y_n, 1) is therefore rescaled to ``Z_s / Z`` with Z_s the local-linear fit of
+    Z over ``window_s``: the image-plane trajectory is untouched, only the depth along the
+    ray is smoothed. ``window_s <= 0`` returns the input.
+
+    t : (F,) s; pos : (F, M, 3) camera mm, NaN = missing. Returns (F, M, 3).
+    """
+    pos = np.asarray(pos, dtype=float)
+    if window_s <= 0 or len(t) < 3:
+        return pos.copy()
+    out = pos.copy()
+    for k in range(pos.shape[1]):
+        z = pos[:, k, 2]
+        zs = local_linear(t, z, window_s)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(np.isfinite(zs) & (z > 0), zs / z, 1.0)
+        out[:, k] *= scale[:, None]
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -873,12 +978,28 @@ def split_passes(
     n = len(t)
     if n < 3:
         return []
-    v = np.full(n, np.nan)
-    for i in range(n):
-        sel = np.abs(t - t[i]) <= window_s / 2
-        sel &= np.isfinite(prog)
-        if sel.sum() >= 3 and np.ptp(t[sel]) >= window_s / 3:
-            v[i] = np.polyfit(t[sel], prog[sel], 1)[0]
+    # least-squares slope over a centred time window, from prefix sums (O(N))
+    ok = np.isfinite(prog)
+    tc = t - t[0]
+    x = np.where(ok, prog, 0.0)
+    w = ok.astype(float)
+    tw = np.where(ok, tc, 0.0)
+
+    def csum(a: np.ndarray) -> np.ndarray:
+        return np.concatenate(([0.0], np.cumsum(a)))
+
+    S0, St, Sx, Stt, Stx = csum(w), csum(tw), csum(x), csum(tw * tc), csum(tw * x)
+    lo = np.searchsorted(t, t - window_s / 2 - 1e-9, side="left")
+    hi = np.searchsorted(t, t + window_s / 2 + 1e-9, side="right")
+    n0 = S0[hi] - S0[lo]
+    st, sx = St[hi] - St[lo], Sx[hi] - Sx[lo]
+    stt, stx = Stt[hi] - Stt[lo], Stx[hi] - Stx[lo]
+    den = n0 * stt - st * st
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = (n0 * stx - st * sx) / den
+        spread = np.sqrt(np.maximum(stt / np.maximum(n0, 1) - (st / np.maximum(n0, 1)) ** 2, 0))
+    # enough seen samples spread over enough of the window (a slope needs a baseline)
+    v[(n0 < 3) | ~(den > 0) | (spread < window_s / 12)] = np.nan
     sign = np.zeros(n, dtype=int)
     sign[v > min_speed_mm_s] = 1
     sign[v < -min_speed_mm_s] = -1

@@ -52,6 +52,7 @@ from gaitflow.schemas import CalibrationRecord, CleanFrame, RawFrame
 from gaitflow.stages.base import Inputs, StageSpec
 from gaitflow.stages.detect import E_MAX, block_max, compact_roi, components, initial_w
 
+from gaitflow.errors import ParameterError, StageError
 from gaitflow.markers import trial_kind
 from gaitflow.params import Param, ParamSet
 
@@ -180,9 +181,13 @@ def clean_frame(
     d = depth.copy()
     d[(d < p["min_depth"]) | (d > p["max_depth"])] = 0
     roi = compact_roi(ir, cs.level, 8)
-    comps = components(roi, cs.level, p["min_area"], 8)
+    comps = components(roi, cs.level, p["min_area"], 8, extent=True)
     cen = comps.centroid
     rad = comps.region_radius
+    # Boxes (centre u, v, size w, h) of the components: a thin bar gets a thin box.
+    bb = comps.box if comps.box is not None else np.zeros((0, 4))
+    centre = (bb[:, :2] + bb[:, 2:]) / 2
+    boxes = np.concatenate([centre, bb[:, 2:] - bb[:, :2] + 1], axis=1)
     Fm, Hm = np.eye(4), np.eye(4)
     Q, R = np.eye(4) * p["kf_q"], np.eye(4) * p["kf_r"]
     used = np.zeros(comps.count, dtype=bool)
@@ -193,15 +198,14 @@ def clean_frame(
         x, P = kf_predict(t.x, t.P, Fm, Q)
         match = -1
         if comps.count:
-            dist = np.hypot(cen[:, 0] - x[0], cen[:, 1] - x[1])
-            size = 2.0 * rad + 1.0
-            ok = (dist <= max(2.0 * p["still_tol"], 1.0)) & (size <= 2.0 * x[2] + 2.0) & ~used
+            dist = np.hypot(boxes[:, 0] - x[0], boxes[:, 1] - x[1])
+            similar = (boxes[:, 2] <= 2.0 * x[2] + 2.0) & (boxes[:, 3] <= 2.0 * x[3] + 2.0)
+            ok = (dist <= max(2.0 * p["still_tol"], 1.0)) & similar & ~used
             if ok.any():
                 match = int(np.argmin(np.where(ok, dist, np.inf)))
         if match >= 0:
             used[match] = True
-            z = _box(cen[match, 0], cen[match, 1], rad[match])
-            x, P = kf_update(x, P, z, R, Hm)
+            x, P = kf_update(x, P, boxes[match], R, Hm)
             tracks.append(Track(np.asarray(x, dtype=np.float64), P, 0, t.source))
         elif t.misses + 1 < p["miss_frames"]:
             tracks.append(Track(np.asarray(x, dtype=np.float64), P, t.misses + 1, t.source))
@@ -221,7 +225,7 @@ def clean_frame(
                 taken[j] = True
                 count, anchor = prev[j].count + 1, prev[j].anchor
         if learn and count >= p["still_frames"] and len(tracks) < p["max_tracks"]:
-            tracks.append(_new_track(_box(cen[i, 0], cen[i, 1], rad[i]), p, "still"))
+            tracks.append(_new_track(boxes[i], p, "still"))
             used[i] = True
             promoted += 1
         elif len(cands) < p["max_candidates"]:
@@ -243,12 +247,7 @@ def clean_frame(
         r0, r1 = int(np.floor(v - bh / 2 - m)), int(np.ceil(v + bh / 2 + m)) + 1
         hit = False
         for i in moving:
-            if (
-                cen[i, 0] + rad[i] >= c0
-                and cen[i, 0] - rad[i] <= c1
-                and cen[i, 1] + rad[i] >= r0
-                and cen[i, 1] - rad[i] <= r1
-            ):
+            if bb[i, 2] >= c0 and bb[i, 0] < c1 and bb[i, 3] >= r0 and bb[i, 1] < r1:
                 hit = True
                 break
         lift.append(hit)
@@ -277,13 +276,21 @@ def _seed_floor(cs: CameraClean, cal: CalibrationRecord, p: Mapping[str, Any]) -
 
 
 def init(params: dict[str, Any]) -> CleanState:
+    if params["min_depth"] >= params["max_depth"]:
+        raise ParameterError(
+            "clean",
+            "min_depth",
+            params["min_depth"],
+            f"must be below max_depth={params['max_depth']}",
+        )
     return CleanState(dict(params))
 
 
 def step(state: CleanState, inputs: Inputs) -> tuple[CleanState, list]:
     """Clean one raw frame; publish ``clean`` (nothing for calibration frames)."""
     raw = inputs["raw"]
-    assert isinstance(raw, RawFrame)
+    if not isinstance(raw, RawFrame):
+        raise StageError("clean", f"input raw is a {type(raw).__name__}, not a RawFrame")
     cal = inputs.get("calibration")
     cal = cal if isinstance(cal, CalibrationRecord) else None
     p = state.params

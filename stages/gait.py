@@ -69,6 +69,31 @@ PARAMS = ParamSet(
             "max_born", float, 0.25, "normalised", "highest level a floor contact may start", 0.05
         ),
         Param("max_gap_s", float, 0.3, "s", "longest gap filled by a cubic Bezier", 0.0, 2.0),
+        Param(
+            "outlier_mm",
+            float,
+            25.0,
+            "mm",
+            "knee markers: one this far from the median of its 4 neighbours is dropped (0=off)",
+            0.0,
+        ),
+        Param(
+            "segment_tol",
+            float,
+            0.15,
+            "ratio",
+            "knee angle unknown where thigh or shank length departs this much from its median",
+            0.0,
+        ),
+        Param(
+            "depth_smooth_s",
+            float,
+            0.0,
+            "s",
+            "smooth each marker's depth along its ray over this window (0 = off)",
+            0.0,
+            2.0,
+        ),
         Param("resample_hz", float, 100.0, "Hz", "resampling rate (the paper: 100)", 10.0, 1000.0),
         Param(
             "refine",
@@ -88,6 +113,7 @@ PARAMS = ParamSet(
     ),
 )
 
+NOMINAL_PERIOD_S = 1 / 30
 BODY = [f"{s}_{m}" for s in "LR" for m in ("SHO", "ASI", "PSI", "HIP", "THI")]
 
 
@@ -228,6 +254,7 @@ def analyse(
     idx, t, fps = _times(frames)
     warnings: list[str] = []
     pos = np.stack([f.position for f in frames]) if frames else np.zeros((0, 20, 3))
+    pos = gc.smooth_depth(t, pos, p["depth_smooth_s"])
     nq = int(np.floor((t[-1] - t[0]) * p["resample_hz"] + 1e-6)) + 1 if len(t) else 0
     tq = t[0] + np.arange(nq) / p["resample_hz"] if len(t) else np.zeros(0)
     pq = np.full((nq, 20, 3), np.nan)
@@ -241,12 +268,23 @@ def analyse(
         _, pq[:, k] = gc.resample(t, filled, p["resample_hz"])
     knee = {"L": np.full(nq, np.nan), "R": np.full(nq, np.nan)}
     if not live:
+        # the knee markers alone go through the outlier filter: a dropped heel sample in a
+        # fast swing would cost an event, a dropped knee sample only a filled gap
+        kidx = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HIP", "KNE", "ANK")]
+        kpos = gc.reject_outliers(pos[:, kidx], p["outlier_mm"])
+        pk = np.full((nq, 20, 3), np.nan)
+        for j, k in enumerate(kidx):
+            if np.isfinite(kpos[:, j, 0]).sum() >= 2:
+                filled, _ = gc.fill_gaps(t, kpos[:, j], p["max_gap_s"])
+                _, pk[:, k] = gc.resample(t, filled, p["resample_hz"])
         for s in "LR":
-            knee[s] = gc.knee_flexion(
-                pq[:, MARKER_INDEX[f"{s}_HIP"]],
-                pq[:, MARKER_INDEX[f"{s}_KNE"]],
-                pq[:, MARKER_INDEX[f"{s}_ANK"]],
-            )
+            hip, kne, ank = (pk[:, MARKER_INDEX[f"{s}_{m}"]] for m in ("HIP", "KNE", "ANK"))
+            knee[s] = gc.knee_flexion(hip, kne, ank)
+            if p["segment_tol"] > 0:
+                # a wrong label that survived makes a thigh or shank change length
+                bad = gc.segment_outliers(hip, kne, p["segment_tol"])
+                bad |= gc.segment_outliers(kne, ank, p["segment_tol"])
+                knee[s][bad] = np.nan
     passes: list[dict[str, Any]] = []
     contacts_all: list[dict[str, list[gc.Contact]]] = []
     pass_st: list[dict[str, Any]] = []
@@ -391,13 +429,16 @@ def _gait_frame(state: GaitState, rec: FrameRec, events: list) -> GaitFrame:
     if state.plane is not None:
         heel = np.array([gc.plane_height(pos[MARKER_INDEX[f"{s}_HEE"]], state.plane) for s in "LR"])
         toe = np.array([gc.plane_height(pos[MARKER_INDEX[f"{s}_TOE"]], state.plane) for s in "LR"])
-    _, t, _ = _times(state.frames)
+    # live time: from the trial's first frame at the nominal period (the summary uses the
+    # measured one); recomputing it over the whole buffer would cost O(frames) per frame
+    first = state.frames[0].header
+    t_now = (rec.header.capture_ns - first.capture_ns) / 1e9 + first.frame * NOMINAL_PERIOD_S
     return GaitFrame.follow(
         rec.header,
         knee_flexion=knee,
         heel_height=heel,
         toe_height=toe,
-        time_s=float(t[-1]),
+        time_s=float(t_now),
         events=events,
     )
 

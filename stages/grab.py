@@ -141,6 +141,9 @@ class GrabSource:
                     yield [_restamp(m, last=True) for m in group]
                     return
                 yield group
+            if self.counters:
+                total = sum(self.counters.values())
+                log.warning("grab: %d frame(s) skipped so far: %s", total, self.counters)
             if not p["loop"] or p["source"] in LIVE or first_ns is None or last_ns is None:
                 return
             offset += last_ns - first_ns + period

@@ -54,7 +54,6 @@ from gaitflow.stages.model import (
     FloorFrame,
     template_layout,
 )
-from scipy.optimize import linear_sum_assignment
 
 from gaitflow.errors import StageError
 from gaitflow.markers import CLUSTER_MODES, MARKER_INDEX, MARKER_NAMES, SITES, cluster_mode
@@ -95,6 +94,13 @@ PARAMS = ParamSet(
             "a label is dropped when another blob scores within this margin of the best",
             0.0,
             100.0,
+        ),
+        Param(
+            "publish_asis_psis",
+            bool,
+            False,
+            "",
+            "publish the near ASI and PSI (their depth is poor on the pelvis silhouette)",
         ),
         Param(
             "turn_speed",
@@ -167,13 +173,11 @@ class Geometry:
                 if v is not None and len(v) == 3 and np.isfinite(v).all():
                     offsets[k, j] = v
                     if k == 0 and f"far_{s}" not in meas:
-                        offsets[1, j] = np.asarray(v) + (0.0, max(2 * tpl[j, 2], 60.0), 0.0)
-        dist = np.linalg.norm(layout[:, None, :] - layout[None, :, :], axis=2)
-        sd = extra.get("site_distances")
-        if sd is not None:
-            sd = np.asarray(sd, dtype=np.float64)
-            if sd.shape == (10, 10):
-                dist = np.where(np.isfinite(sd) & (sd > 0), sd, dist)
+                        back = max(2 * tpl[j, 2], 60.0)
+                        offsets[1, j] = np.asarray(v) + np.array([0.0, back, 0.0])
+        # Sagittal (forward, height) distances: see _rigid.
+        near = offsets[0]
+        dist = np.hypot(near[:, None, 0] - near[None, :, 0], near[:, None, 2] - near[None, :, 2])
         return cls(offsets, dist, sho_h)
 
     def d(self, a: str, b: str) -> float:
@@ -292,6 +296,7 @@ class _Frame:
     tracked: np.ndarray  # (20,) bool, prediction comes from a fresh track
     ambiguity: float
     age: np.ndarray  # (20,) frames since each marker was last labelled
+    publish_asis_psis: bool = True
 
     def pos(self, i: int) -> np.ndarray:
         """(N, 3) blob positions under marker ``i``'s cluster mode."""
@@ -302,10 +307,7 @@ class _Frame:
 # for matching, ASI and PSI use the normal mode: they sit on the front and back silhouette
 # of the pelvis, where the bottom mode's far layer is often the room behind the subject.
 MODE_OF = np.array(
-    [
-        0 if n[2:] in ("ASI", "PSI") else CLUSTER_MODES.index(cluster_mode(n))
-        for n in MARKER_NAMES
-    ]
+    [0 if n[2:] in ("ASI", "PSI") else CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES]
 )
 
 
@@ -316,9 +318,15 @@ def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
 
 
 def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np.ndarray:
-    """Squared-sigma error of distances |pa - pb| (M, 3) against the model distance d0."""
+    """Squared-sigma error of sagittal distances |pa - pb| against the model's d0.
+
+    Points are (M, 3) (f, e, h); only (f, h) count. Depth is the noisy axis of a marker on
+    a silhouette (tens of mm, more at the heel and pelvis) while (f, h) come from the
+    image, so segment lengths are compared in the sagittal plane (the model's are too).
+    """
     sig = (20.0 + 0.2 * d0) if loose else (10.0 + 0.1 * d0)
-    return ((np.linalg.norm(pa - pb, axis=1) - d0) / sig) ** 2
+    d = np.hypot(pa[:, 0] - pb[:, 0], pa[:, 2] - pb[:, 2])
+    return ((d - d0) / sig) ** 2
 
 
 def _slots(fr: _Frame, idx: list[int], cand: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -406,6 +414,15 @@ def label_frame(
             j = int(np.argmin(dist))
             if dist[j] < gate:
                 sho_blob = int(cand[j])
+                # The near shoulder is the one nearest the camera: if the track sits on a
+                # far shoulder (seen first), move to a clearly nearer one at the same place.
+                nearer = cand[
+                    (np.abs(top[cand, 0] - top[sho_blob, 0]) < 0.2 * H)
+                    & (top[cand, 1] < top[sho_blob, 1] - 0.07 * H)
+                ]
+                if nearer.size:
+                    sho_blob = int(nearer[np.argmin(top[nearer, 1])])
+                    kf.x[:3] = top[sho_blob]
         if sho_blob >= 0 and st.sho_missed >= 3:
             # Back after a gap (out of view, turning): start afresh, the subject may have
             # turned round.
@@ -427,9 +444,7 @@ def label_frame(
             return st, assign
         x = np.concatenate([top[sho_blob], np.zeros(3)])
         P = np.diag([20.0**2] * 3 + [1500.0**2] * 3)
-        st = _reset_tracks(
-            replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0)
-        )
+        st = _reset_tracks(replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0))
 
     # Direction (with hysteresis) and near side.
     va = float(st.sho_x[3])
@@ -475,7 +490,18 @@ def label_frame(
         if sho_blob >= 0:
             free[sho_blob] = False
         age = frame_idx - st.seen
-        fr = _Frame(qm, free, assign, pred, sig, near, tracked, p["ambiguity"], age)
+        fr = _Frame(
+            qm,
+            free,
+            assign,
+            pred,
+            sig,
+            near,
+            tracked,
+            p["ambiguity"],
+            age,
+            p["publish_asis_psis"],
+        )
         _pelvis(fr, geo, sho, H, p["gate"])
         _lower(fr, geo, sho, H, p["gate"])
 
@@ -514,7 +540,9 @@ def _acquire_shoulder(floor: np.ndarray, ok: np.ndarray, band: np.ndarray, H: fl
         near = body & (np.abs(floor[:, 0] - floor[i, 0]) < 0.3 * H)
         near &= np.abs(floor[:, 1] - floor[i, 1]) < 0.35 * H
         n = int(near.sum())
-        if n >= 2:
+        # The near shoulder stands out toward the camera from the hips and thighs; a far
+        # shoulder (seen first as the subject turns into view) lies behind them.
+        if n >= 2 and floor[i, 1] < np.median(floor[near, 1]):
             cands.append((n, -floor[i, 1], int(i)))
     if not cands:
         return -1
@@ -550,7 +578,7 @@ def _predictions(
                 t = st.last[i] + st.vel[i] * age
                 pred[i] = (direction * t[0], t[1], t[2])
                 s = 30.0 + 20.0 * age
-                se = 0.25 * H if site in ("ASI", "PSI") else s
+                se = 0.25 * H if site in ("ASI", "PSI") else s + 20.0
                 sig[i] = (s + 0.3 * abs(st.vel[i][0]), se, s)
                 tracked[i] = True
     return pred, sig, tracked
@@ -587,6 +615,9 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     # (and PSI) only absorb their blobs, and a near label that could as well be the far
     # one is dropped by the ambiguity test.
     hidden = {MARKER_INDEX[f"{far}_PSI"], MARKER_INDEX[f"{far}_ASI"]}
+    publish = set(idx) - hidden
+    if not fr.publish_asis_psis:
+        publish = {MARKER_INDEX[f"{near}_HIP"]}
     if K > 7:
         # Keep the 7 nearest the expected pelvis height.
         hp = np.mean([geo.rel_sho("near", s)[2] for s in ("PSI", "HIP", "ASI")])
@@ -597,11 +628,11 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     pts = _slots(fr, idx, cand, T)
     present = T < K
     off = [geo.rel_sho(sd, st) for sd, st in names]
-    fh = [0, 2]  # sagittal (f, h): the depth of ASI and PSI is not trusted
+    fh = [0, 2]  # sagittal (f, h), as in _rigid
     for a, b in ((0, 1), (1, 2), (0, 2), (2, 3), (0, 4), (3, 4)):
         d0 = float(np.linalg.norm(off[a][fh] - off[b][fh]))
         both = present[:, a] & present[:, b]
-        cost[both] += _rigid(pts[both, a][:, fh], pts[both, b][:, fh], d0)
+        cost[both] += _rigid(pts[both, a], pts[both, b], d0)
     for a, b in ((0, 1), (1, 2), (0, 2)):
         both = present[:, a] & present[:, b]
         cost[both & ~(pts[:, a, 0] < pts[:, b, 0])] = np.inf
@@ -621,6 +652,9 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     for k, i in enumerate(idx):
         if T[m, k] < K and i in hidden:
             fr.free[cand[T[m, k]]] = False
+        elif i not in publish:
+            if T[m, k] < K:
+                fr.free[cand[T[m, k]]] = False
         elif keep[k] and _unary(fr, i, cand[T[m, k] : T[m, k] + 1])[0] <= 3 * gate**2:
             fr.assign[i] = int(cand[T[m, k]])
             fr.free[cand[T[m, k]]] = False
@@ -668,12 +702,19 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             sag = pts[allp][:, :, [0, 2]]  # (f, h)
             out = _triangle_outside(sag[:, 0], sag[:, 3], sag[:, 2], sag[:, 1])
             cost[allp] += (out / 15.0) ** 2
-        # Hard: the toe is ahead of the heel (a foot pitched 60 deg keeps it ahead), the
-        # tibia marker above the ankle one.
+        # Hard: the tibia marker above the ankle one.
+        # Even pitched 60 deg, the toe stays half a foot length ahead of the heel (a tibia
+        # marker, above the ankle, does not).
+        reach = 0.5 * geo.d("HEE", "TOE")
         ht = present[:, 2] & present[:, 3]
-        cost[ht & ~(pts[:, 3, 0] > pts[:, 2, 0])] = np.inf
+        cost[ht & ~(pts[:, 3, 0] > pts[:, 2, 0] + reach)] = np.inf
         ta = present[:, 0] & present[:, 1]
-        cost[ta & ~(pts[:, 0, 2] > pts[:, 1, 2])] = np.inf
+        cost[ta & ~(pts[:, 0, 2] > pts[:, 1, 2] - 20.0)] = np.inf
+        # The heel and toe markers never rise far above the ankle one (a plantarflexed
+        # foot lifts the heel to about the ankle's level).
+        for k, margin in ((2, 60.0), (3, 90.0)):
+            ak = present[:, 1] & present[:, k]
+            cost[ak & ~(pts[:, k, 2] < pts[:, 1, 2] + margin)] = np.inf
         # A shank marker never drops far below its standing height while walking.
         tib_h = geo.rel_sho("near", "TIB")[2]
         cost[present[:, 0] & ~(pts[:, 0, 2] > 0.6 * tib_h)] = np.inf
@@ -685,7 +726,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         p2 = _slots(fr, far_idx, cand, T2)
         both2 = (T2 < K).all(axis=1)
         c2[both2] += _rigid(p2[both2, 0], p2[both2, 1], geo.d("HEE", "TOE"))
-        c2[both2 & ~(p2[:, 1, 0] > p2[:, 0, 0])] = np.inf
+        c2[both2 & ~(p2[:, 1, 0] > p2[:, 0, 0] + reach)] = np.inf
         pres2 = T2 < K
         order = np.argsort(cost)[:30]
         total = np.full((len(order), len(T2)), np.inf)
@@ -730,10 +771,26 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     K2 = lc.size
     if K2 == 0:
         return
-    T3 = _tuples(K2, 2)
-    c3 = _base_cost(fr, [kne_i, thi_i], lc, T3)
-    p3 = _slots(fr, [kne_i, thi_i], lc, T3)
+    cap = 7 if hip is not None else 6  # the search grows as (K + 1) ** slots
+    if K2 > cap:
+        lc = lc[np.argsort(np.abs(q[lc, 2] - geo.rel_sho("near", "KNE")[2]))[:cap]]
+        K2 = cap
+    # The far knee and thigh take part only to absorb their blobs when seen (never
+    # published): otherwise a far-leg marker would take a hidden near one's label.
+    far_leg = [MARKER_INDEX[f"{far}_KNE"], MARKER_INDEX[f"{far}_THI"]]
+    slots = [kne_i, thi_i, *far_leg]
+    if hip is None:
+        # An unlabelled hip blob (left out as ambiguous) must not pass for the thigh one.
+        slots.append(hip_i)
+    T3 = _tuples(K2, len(slots))
+    c3 = _base_cost(fr, slots, lc, T3)
+    p3 = _slots(fr, slots, lc, T3)
     pr = T3 < K2
+    if hip is None:
+        for k, site in ((0, "KNE"), (1, "THI")):
+            both = pr[:, 4] & pr[:, k]
+            c3[both] += _rigid(p3[both, 4], p3[both, k], geo.d("HIP", site))
+            c3[both & ~(p3[:, 4, 2] > p3[:, k, 2])] = np.inf
     anchors = []
     for site in ("TIB", "ANK"):
         i = MARKER_INDEX[f"{near}_{site}"]
@@ -756,6 +813,9 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         return
     keep = _unambiguous(c3, T3, j, K2, fr.ambiguity)
     chosen = {i: int(T3[j, k]) for k, i in enumerate((kne_i, thi_i)) if keep[k]}
+    for k in range(2, len(slots)):
+        if T3[j, k] < K2:
+            fr.free[lc[T3[j, k]]] = False
     _accept(fr, chosen, lc, geo, hip, gate)
 
 
@@ -880,6 +940,8 @@ SPEC = StageSpec(
 # --- scoring (evaluation only: ground truth never reaches the stage) ------------------------
 
 FAR_SEEN = ("ASI", "PSI", "HEE", "TOE")
+# Markers the gait stage uses (knee angle HIP-KNE-ANK, heel and toe events, stride).
+GAIT_SITES = ("HIP", "KNE", "ANK", "HEE", "TOE")
 
 
 def score_labelling(
@@ -903,10 +965,14 @@ def score_labelling(
     ``wrong`` and ``precision`` (correct labels / labels); ``recall`` (visible markers
     labelled correctly / visible, over the markers a side view shows: the near side plus the
     far ASI, PSI, HEE and TOE); ``complete`` (share of frames without a wrong label and with
-    every such visible marker labelled); ``per_marker_recall``.
+    every such visible marker labelled); ``accuracy_gait`` (share of frames without a
+    wrong HIP, KNE, ANK, HEE or TOE label, the markers the gait stage uses);
+    ``per_marker_recall`` and ``per_marker_precision``.
     """
     truth = {(t.header.trial, t.header.frame): t for t in truth_msgs}
-    frames = ok_frames = labels = correct = visible = hit = complete = 0
+    frames = ok_frames = labels = correct = visible = hit = complete = ok_gait = 0
+    wrong_by = np.zeros(20)
+    labels_by = np.zeros(20)
     per_vis = np.zeros(20)
     per_hit = np.zeros(20)
     for m in labelled_msgs:
@@ -919,8 +985,10 @@ def score_labelling(
         px = np.asarray(m.pixel, dtype=np.float64)
         good = np.zeros(20, bool)
         n_wrong = 0
+        gait_wrong = False
         for i in np.flatnonzero(np.isfinite(px).all(axis=1)):
             labels += 1
+            labels_by[i] += 1
             d = np.hypot(*(tp - px[i]).T)
             # The label's own marker must lie within tol_px, and no visible marker may be
             # nearer by more than 1 px: a blob where two markers overlap (near and far ASI
@@ -933,9 +1001,12 @@ def score_labelling(
                 good[i] = vis[i]
             else:
                 n_wrong += 1
+                wrong_by[i] += 1
+                gait_wrong |= MARKER_NAMES[i][2:] in GAIT_SITES
                 continue
             correct += 1
         ok_frames += n_wrong == 0
+        ok_gait += not gait_wrong
         near = m.near_side or ("R" if m.direction >= 0 else "L")
         expect = vis & np.array([n[0] == near or n.split("_")[1] in FAR_SEEN for n in MARKER_NAMES])
         visible += int(expect.sum())
@@ -952,6 +1023,12 @@ def score_labelling(
         "precision": correct / labels if labels else nan,
         "recall": hit / visible if visible else nan,
         "complete": complete / frames if frames else nan,
+        "accuracy_gait": ok_gait / frames if frames else nan,
+        "per_marker_precision": {
+            MARKER_NAMES[i]: float(1 - wrong_by[i] / labels_by[i])
+            for i in range(20)
+            if labels_by[i]
+        },
         "per_marker_recall": {
             MARKER_NAMES[i]: float(per_hit[i] / per_vis[i]) for i in range(20) if per_vis[i]
         },

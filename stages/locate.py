@@ -17,13 +17,15 @@ with these departures, each for the stated reason:
   the farthest slab is then the background, not the body behind the swinging arm. Bottom
   mode therefore takes the farthest significant slab that starts within ``bottom_reach``
   (150 mm: an arm's thickness plus its gap to the trunk) behind the nearest one.
-- **Top mode** uses only the window rows at and above the centroid (the [A-3b] refinement:
-  the half away from the occluded side). For heel, toe and shoulder markers the lower half
-  holds the floor (nearer than the foot in a side view from 0.8 m) or the arm; if that
-  half has fewer than 3 valid pixels the whole window is used.
+- **Top mode** is the normal mode (Rec. [A-3b]). The optional refinement ``top_half``
+  (use only the window rows at and above the centroid, the half away from the floor or the
+  arm) was measured worse on the simulator (``gaitflow bench mocap``: median 3D error of
+  shoulder and toe markers rose from about 40 and 28 mm to about 110 and 190 mm, because
+  the upper half of those windows is mostly background), so it is off by default.
 - **Marker centre.** The ring is the surface the marker sits on; the sphere's centre is one
   radius in front of it, towards the camera (the markers face the camera in a side view).
-  The point is moved back along its viewing ray by ``marker_diameter_mm / 2`` so that the
+  The point is moved towards the camera along its viewing ray by half the marker diameter (the
+  ``marker_diameter_mm`` parameter, else the session camera.json's, else 25 mm) so that the
   published position is the marker centre, which is what the subject model and the gait
   kinematics assume. ``surface_offset`` = false keeps the paper's surface point.
 - **D2 in px** ([A-3e]): the distance to (p, q) is measured in the image.
@@ -53,6 +55,8 @@ from gaitflow.markers import CLUSTER_MODES
 from gaitflow.params import Param, ParamSet
 
 MODE_INDEX = {m: i for i, m in enumerate(CLUSTER_MODES)}
+# The common clinical marker size; used when neither the parameter nor the session says.
+DEFAULT_DIAMETER_MM = 25.0
 
 PARAMS = ParamSet(
     "locate",
@@ -88,13 +92,20 @@ PARAMS = ParamSet(
         Param(
             "marker_diameter_mm",
             float,
-            25.0,
+            0.0,
             "mm",
-            "marker sphere diameter (surface-to-centre offset is half of it)",
+            "marker sphere diameter (the surface-to-centre offset is half of it); 0 = the "
+            "session camera.json's marker_diameter_mm, else 25 mm",
             low=0.0,
             high=100.0,
         ),
-        Param("camera", dict, {}, "-", "camera.json override of the intrinsics; {} = none"),
+        Param(
+            "camera",
+            dict,
+            {},
+            "-",
+            "intrinsics override: a camera.json document or flat Camera fields; {} = none",
+        ),
     ),
 )
 
@@ -417,6 +428,7 @@ def locate_all(
     region_radius: np.ndarray,
     camera: Camera,
     params: Mapping[str, Any],
+    diameter: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Alg. 3 for every blob, then R9: camera-space positions.
 
@@ -426,6 +438,8 @@ def locate_all(
     centroid : (N, 2) (u, v) px.
     region_radius : (N,) r_r px.
     camera : intrinsics and distortion of the depth sensor.
+    diameter : marker diameter in mm (default: the ``marker_diameter_mm`` parameter, or
+        25 mm when that is 0).
 
     Returns
     -------
@@ -440,8 +454,10 @@ def locate_all(
             pos[:, m, 0] = xy[:, 0] * zs[:, m]
             pos[:, m, 1] = xy[:, 1] * zs[:, m]
             pos[:, m, 2] = zs[:, m]
-        if params["surface_offset"] and params["marker_diameter_mm"] > 0:
-            off = 0.5 * params["marker_diameter_mm"]
+        if diameter is None:
+            diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
+        if params["surface_offset"] and diameter > 0:
+            off = 0.5 * diameter
             norm = np.linalg.norm(pos, axis=2, keepdims=True)
             with np.errstate(invalid="ignore", divide="ignore"):
                 pos = pos * np.clip(1.0 - off / norm, 0.0, None)
@@ -455,34 +471,57 @@ class LocateState:
     params: Mapping[str, Any]
     camera_doc: Mapping[str, Any]
     camera: Camera
+    diameter: float = DEFAULT_DIAMETER_MM
 
 
 def _camera(doc: Mapping[str, Any], where: str) -> Camera:
+    """A camera.json document, or a flat mapping of Camera fields, as a Camera."""
     if not doc:
         return Camera()
     try:
-        return Camera.from_json(doc, source=where)
-    except InputError as exc:
+        if "depth_intrinsics" in doc:
+            return Camera.from_json(doc, source=where)
+        fields = set(Camera.__dataclass_fields__)
+        unknown = sorted(set(doc) - fields)
+        if unknown:
+            raise InputError(where, f"unknown camera key {unknown[0]!r}")
+        return Camera(**dict(doc))
+    except (InputError, TypeError) as exc:
         raise StageError("locate", f"bad camera intrinsics from {where}: {exc}") from exc
 
 
+def _diameter(params: Mapping[str, Any], doc: Mapping[str, Any]) -> float:
+    """Marker diameter: the parameter, else the session camera.json's, else 25 mm."""
+    if params["marker_diameter_mm"] > 0:
+        return float(params["marker_diameter_mm"])
+    v = doc.get("marker_diameter_mm") if doc else None
+    if isinstance(v, int | float) and not isinstance(v, bool) and 5.0 <= v <= 100.0:
+        return float(v)
+    return DEFAULT_DIAMETER_MM
+
+
+def _state(params: Mapping[str, Any], doc: Mapping[str, Any], where: str) -> LocateState:
+    cam_doc = params.get("camera") or doc
+    cam = _camera(cam_doc, "parameter camera" if params.get("camera") else where)
+    return LocateState(dict(params), dict(doc), cam, _diameter(params, doc))
+
+
 def init(params: dict[str, Any]) -> LocateState:
-    doc = params.get("camera") or {}
-    return LocateState(dict(params), dict(doc), _camera(doc, "parameter camera"))
+    return _state(params, {}, "defaults")
 
 
 def step(state: LocateState, inputs: Inputs) -> tuple[LocateState, list]:
     """Locate every blob of one frame in 3D; publish ``markers``."""
     frame, blobs = inputs["clean"], inputs["blobs"]
-    assert isinstance(frame, CleanFrame) and isinstance(blobs, Blobs)
+    if not (isinstance(frame, CleanFrame) and isinstance(blobs, Blobs)):
+        raise StageError("locate", "inputs must be a CleanFrame and a Blobs message")
     p = state.params
-    if not p.get("camera"):
-        doc = frame.camera or {}
-        if doc != state.camera_doc:
-            state = LocateState(p, dict(doc), _camera(doc, "clean frame camera"))
+    doc = frame.camera or {}
+    if doc != state.camera_doc:
+        state = _state(p, doc, "clean frame camera")
     centroid = np.asarray(blobs.centroid, dtype=np.float64).reshape(-1, 2)
     rr = np.asarray(blobs.region_radius, dtype=np.float64)
-    z, pos = locate_all(np.asarray(frame.depth), centroid, rr, state.camera, p)
+    z, pos = locate_all(np.asarray(frame.depth), centroid, rr, state.camera, p, state.diameter)
     out = Markers3D.follow(
         blobs.header,
         centroid=centroid,

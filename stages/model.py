@@ -79,6 +79,19 @@ def body_cluster(P: np.ndarray, radius: float) -> np.ndarray:
     return np.hypot(P[:, 0] - c[0], P[:, 1] - c[1]) < radius
 
 
+# Neighbours along the body chain, nearest first: an unmeasured site is placed from them.
+CHAIN: dict[str, tuple[str, ...]] = {
+    "ANK": ("HEE", "TOE", "TIB"),
+    "HEE": ("ANK", "TOE"),
+    "TOE": ("HEE", "ANK"),
+    "TIB": ("ANK", "KNE"),
+    "KNE": ("TIB", "THI"),
+    "THI": ("KNE", "HIP"),
+    "HIP": ("THI", "ASI", "PSI"),
+    "ASI": ("PSI", "HIP"),
+    "PSI": ("ASI", "HIP"),
+}
+
 PARAMS = ParamSet(
     NAME,
     (
@@ -320,7 +333,17 @@ def label_pose(
     shank = [i for i in np.flatnonzero((h > lo_shank) & (h <= lo_leg)) if is_near[i]]
     if shank:
         put(f"{near}_TIB", max(shank, key=lambda i: h[i]))
-    for side, sel in ((near, is_near), (far, ~is_near)):
+    # The feet sit closer to the mid-plane than the pelvis: split the low blobs by their
+    # own largest depth gap (when clear), not by the pelvis mid-plane.
+    low_all = np.flatnonzero(h <= lo_shank)
+    foot_near = is_near.copy()
+    if len(low_all) >= 2:
+        es = np.sort(e[low_all])
+        gaps = np.diff(es)
+        g = int(np.argmax(gaps))
+        if gaps[g] > 40.0:
+            foot_near[low_all] = e[low_all] <= es[g]
+    for side, sel in ((near, foot_near), (far, ~foot_near)):
         low = [i for i in np.flatnonzero(h <= lo_shank) if sel[i]]
         if not low:
             continue
@@ -328,12 +351,11 @@ def label_pose(
         if side == near:
             put(f"{side}_TOE", low[-1])
             rest = low[:-1]
-            if rest:
+            if len(rest) >= 2:
                 ank = max(rest, key=lambda i: h[i])
                 put(f"{side}_ANK", ank)
-                rest = [i for i in rest if i != ank]
-                if rest:
-                    put(f"{side}_HEE", rest[0])
+                put(f"{side}_HEE", min((i for i in rest if i != ank), key=lambda i: f[i]))
+            # One blob between heel and ankle is likely the two merged: neither is measured.
         elif len(low) >= 2:
             put(f"{side}_HEE", low[0])
             put(f"{side}_TOE", low[-1])
@@ -446,6 +468,16 @@ def build_model(
                 seen[s] = True
             else:
                 seen[s] = False
+    # Unmeasured sites: the template's offset from the nearest measured site of the same
+    # chain, so that foot and leg distances stay consistent with what was measured.
+    for j, s in enumerate(SITES):
+        if seen.get(s):
+            continue
+        for k in CHAIN.get(s, ()):
+            if seen.get(k):
+                jk = SITES.index(k)
+                measured[j, [0, 2]] = measured[jk, [0, 2]] + (layout[j] - layout[jk])[[0, 2]]
+                break
     site_d = np.linalg.norm(measured[:, None, :] - measured[None, :, :], axis=2)
     near_ref = floor_ref[[MARKER_INDEX[f"{near}_{s}"] for s in SITES]]
     with np.errstate(invalid="ignore"):
@@ -455,16 +487,24 @@ def build_model(
     def seg(a: str, b: str) -> float:
         return float(site_d[SITES.index(a), SITES.index(b)])
 
-    # Standing offsets of every seen marker from the near shoulder: forward (along the
-    # facing direction), e (away from the camera), height. Label predicts from these.
+    # Standing offsets from the near shoulder: forward (along the facing direction), e
+    # (away from the camera), height. Near side: every site (measured, or anchored as
+    # above); far side: the markers seen. Label predicts from these.
     sho_q = floor_ref[MARKER_INDEX[f"{near}_SHO"]]
     offsets: dict[str, list[float]] = {}
+    s0 = measured[SITES.index("SHO")]
+    for j, s in enumerate(SITES):
+        offsets[f"near_{s}"] = [
+            float(measured[j, 0] - s0[0]),
+            float(s0[2] - measured[j, 2]),
+            float(measured[j, 1]),
+        ]
     if np.isfinite(sho_q).all():
-        for i, name in enumerate(MARKER_NAMES):
-            q = floor_ref[i]
+        far = "L" if near == "R" else "R"
+        for s in SITES:
+            q = floor_ref[MARKER_INDEX[f"{far}_{s}"]]
             if np.isfinite(q).all():
-                side = "near" if name[0] == near else "far"
-                offsets[f"{side}_{name[2:]}"] = [
+                offsets[f"far_{s}"] = [
                     float(facing * (q[0] - sho_q[0])),
                     float(q[1] - sho_q[1]),
                     float(q[2]),

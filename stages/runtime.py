@@ -119,6 +119,8 @@ class RuntimeOptions:
             raise ConfigError(f"{source}: unknown runtime key(s) {unknown}")
         kw: dict[str, Any] = {}
         for k, v in doc.items():
+            if k == "shm" and isinstance(v, bool):
+                v = "on" if v else "off"  # YAML 1.1 reads a bare on/off as a boolean
             want = type(getattr(cls(), k)) if getattr(cls(), k) is not None else int
             try:
                 kw[k] = v if v is None else want(v)
@@ -658,7 +660,8 @@ def serve(
 ) -> int:
     """Run one stage worker until SIGINT/SIGTERM (or until a source is exhausted).
 
-    Returns the exit code: 0 after a clean stop. A worker failure raises StageError.
+    Returns the exit code: 0 after a clean stop, 1 if the worker failed. Configuration
+    errors (bad parameters, unknown stage) raise before anything starts.
     """
     opt = options or RuntimeOptions()
     spec = _load_spec(node)
@@ -692,7 +695,13 @@ def serve(
             if parent and os.getppid() != parent:
                 log.warning("%s: the launcher (pid %d) is gone: stopping", node.name, parent)
                 break
-        rt.stop()
+        try:
+            rt.stop()
+        except StageError as exc:
+            # A crashed worker is a runtime failure (exit 1: the launcher restarts it), not
+            # a configuration error (exit 2: it does not).
+            log.error("%s", exc)
+            return 1
         return 0
     finally:
         if server is not None:

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from gaitflow.schemas import CalibrationRecord, CleanFrame, RawFrame
 from gaitflow.stages import clean
+
+from gaitflow.errors import ParameterError
 
 H, W = 120, 160
 REFLECTOR = (slice(20, 24), slice(30, 34))  # a still 4x4 stray reflector
@@ -115,3 +118,10 @@ def test_floor_markers_from_calibration_are_masked_from_the_first_frame() -> Non
     assert out.camera == {"model": "x"}  # the session intrinsics travel to locate
     ((out2,),) = run([f], cal, mask_floor_markers=False)
     assert out2.mask[100, 100] == 0
+
+
+def test_inconsistent_depth_range_is_rejected_at_start() -> None:
+    with pytest.raises(ParameterError, match="min_depth"):
+        clean.init(clean.PARAMS.resolve({"min_depth": 5000.0, "max_depth": 4000.0}))
+    with pytest.raises(ParameterError, match="still_frames"):
+        clean.PARAMS.resolve({"still_frames": 0})

@@ -245,3 +245,22 @@ def test_systemd_units_run_existing_commands_and_role_files() -> None:
         role_files = re.findall(r"/etc/gaitflow/roles/(\S+)", cmd)
         for f in role_files:
             assert (DEPLOY / "roles" / f).exists(), f"{u.name}: {f}"
+
+
+def test_stage_configs_load_as_the_runtime_reads_them() -> None:
+    from gaitflow.stages.runtime import RuntimeOptions, StageConfig
+
+    for path in sorted((DEPLOY / "roles").glob("*.stages.yaml")):
+        cfg = StageConfig.load(str(path))
+        opt = RuntimeOptions.from_mapping(cfg.runtime, str(path))
+        assert opt.metrics_host == "127.0.0.1"
+        assert opt.reorder_timeout_s == deployment.REORDER_TIMEOUT_S
+        assert cfg.bus.connect == ("tcp/127.0.0.1:7447",)
+        assert dict(cfg.bus.extra)["connect/retry"] == deployment.RECONNECT
+        cfg.bus.to_zenoh()  # every key is one zenoh 1.x accepts
+    role = deployment.load_role(DEPLOY / "roles" / "server.yaml")
+    from gaitflow.edgebuffer import router_config
+
+    rcfg, listen = router_config(role)
+    assert listen == ("tcp/127.0.0.1:7447", "tls/127.0.0.1:7448")
+    rcfg.to_zenoh()  # the access-control section and TLS keys are valid zenoh config

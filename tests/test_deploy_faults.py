@@ -114,6 +114,7 @@ def test_router_restart_and_stage_sigkill(tmp_path: Path) -> None:
             restarted = time.monotonic()
             resume = feed.flowing_since(restarted, 5.0)
             assert resume is not None, f"stages did not resume within 5 s (killed {killed:.1f})"
+            print(f"frames flow again {resume:.2f} s after the router restart")
             # SIGKILL the stage: restarted and counted.
             stage = la.child("relay")
             os.kill(stage.proc.pid, signal.SIGKILL)  # type: ignore[union-attr]

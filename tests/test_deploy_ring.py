@@ -155,3 +155,40 @@ def test_watcher_exports_stage_up_from_liveliness() -> None:
     assert w.value("grab") == 1 and w.value("detect") == 0
     tok.undeclare()
     assert w.value("grab") == 0
+
+
+class SlowLink(FlakyLink):
+    """A server that takes 50 ms per frame (a slow consumer behind a blocking link)."""
+
+    def put(self, key: str, payload: bytes) -> None:
+        time.sleep(0.05)
+        super().put(key, payload)
+
+
+def test_slow_server_never_blocks_the_edge(tmp_path: Path) -> None:
+    server = FakeBus()
+    received: list[int] = []
+    server.subscribe(
+        f"gaitflow/{SITE}/*/raw", lambda k, p: received.append(decode(RawFrame, p).header.frame)
+    )
+    token = server.liveliness_token(router_token_key(SITE))
+    local = FakeBus()
+    up = Uplink(
+        local, lambda: SlowLink(server), SITE, "cam-1", ["raw"], Ring(tmp_path),
+        router_token_key(SITE),
+    ).start()  # fmt: skip
+    try:
+        assert _wait(lambda: up.link_up)
+        payloads = [frame(i) for i in range(30)]
+        t = time.perf_counter()
+        for p in payloads:
+            local.put(KEY, p)  # what grab's publisher waits for: the uplink's callback
+        spent = time.perf_counter() - t
+        # Blocking on the server would take 30 x 50 ms = 1.5 s.
+        assert spent < 0.5, f"the edge waited {spent * 1e3:.0f} ms on a slow server"
+        assert up.backlog > 0  # the ring absorbed what the server could not take yet
+        assert _wait(lambda: len(received) == 30, 10)
+        assert received == list(range(30))
+    finally:
+        up.stop()
+        token.undeclare()

@@ -47,7 +47,8 @@ def clean_msg(ir: np.ndarray, trial: str = "walk-01", idx: int = 0) -> CleanFram
 def test_centroid_of_subpixel_disc_within_005px(u0: float, v0: float) -> None:
     img = frame(noise=0.0)
     disc(img, u0, v0, 2.6, 40000.0)
-    det = detect.detect_frame(u16(img), 12000.0, 2.0, (), params(n=1))
+    # The optional refinement (off by default): the rim of partly covered pixels.
+    det = detect.detect_frame(u16(img), 12000.0, 2.0, (), params(n=1, refine=True))
     assert det.blobs.count == 1
     err = np.hypot(det.centroid[0, 0] - u0, det.centroid[0, 1] - v0)
     assert err < 0.05, (det.centroid, u0, v0)

@@ -147,4 +147,25 @@ def test_step_uses_camera_from_clean_frame_and_param_override() -> None:
 
 def test_bad_camera_document_is_a_stage_error() -> None:
     with pytest.raises(StageError, match="camera"):
-        locate.init(params(camera={"model": "x"}))
+        locate.init(params(camera={"model": "x", "depth_intrinsics": {}}))
+    with pytest.raises(StageError, match="unknown camera key"):
+        locate.init(params(camera={"focal": 3.0}))
+
+
+def test_marker_diameter_from_session_camera_json_unless_set() -> None:
+    cam_doc = {**Camera().to_json(), "marker_diameter_mm": 30}
+    cf, bl = _msgs(camera=cam_doc)
+    _, (raw_pt,) = locate.step(
+        locate.init(params(surface_offset=False)), {"clean": cf, "blobs": bl}
+    )
+    _, (out,) = locate.step(locate.init(params()), {"clean": cf, "blobs": bl})
+    shrink = np.linalg.norm(raw_pt.position[0, 0]) - np.linalg.norm(out.position[0, 0])
+    assert shrink == pytest.approx(15.0)
+    _, (out2,) = locate.step(
+        locate.init(params(marker_diameter_mm=20.0)), {"clean": cf, "blobs": bl}
+    )
+    shrink2 = np.linalg.norm(raw_pt.position[0, 0]) - np.linalg.norm(out2.position[0, 0])
+    assert shrink2 == pytest.approx(10.0)
+    # A flat mapping of Camera fields is accepted as the intrinsics override too.
+    st = locate.init(params(camera={"fx": 500.0, "fy": 500.0}))
+    assert st.camera.fx == 500.0

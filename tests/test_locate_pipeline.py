@@ -55,7 +55,8 @@ def test_graph_runs_clean_detect_locate() -> None:
     assert isinstance(m, Markers3D) and m.header.last
     assert m.centroid.shape == (3, 2)
     for u, v in MARKERS:
-        assert np.min(np.hypot(m.centroid[:, 0] - u, m.centroid[:, 1] - v)) < 0.1
+        # Hard-edged literal discs: pixel-quantised, so only wiring-level accuracy here.
+        assert np.min(np.hypot(m.centroid[:, 0] - u, m.centroid[:, 1] - v)) < 0.3
     # Plane at 2600 mm; the published point is the marker centre, 12.5 mm nearer.
     assert np.all(np.abs(m.depth[:, 0] - (2600.0 - 12.5)) < 3.0)
 
@@ -98,3 +99,23 @@ def test_bench_scoring_on_literal_messages() -> None:
     assert r["missed_merged"] == pytest.approx(100 / 3)
     assert r["false_blobs_per_frame"] == 1
     assert sorted(s.errors) == pytest.approx([4.0, 10.0])
+
+
+@pytest.mark.slow
+def test_bench_stages_on_a_few_simulated_frames() -> None:
+    from gaitflow.sim import SimConfig, list_trials, simulate_session
+
+    cfg = SimConfig.quick()
+    rec = simulate_session(list_trials()[0], 0, cfg).recordings["walk-01"]
+    frames = [rec.frame(i) for i in range(30, 36)]  # the subject is in view
+    mids = mocap.mid_exposure_pixels(frames, mocap.truth_lag_frames(cfg))
+    score = mocap.Score()
+    for method in ("adaptive", "static"):
+        score = mocap.Score()
+        rendered = [(r, t, m) for (r, t), m in zip(frames, mids, strict=True)]
+        mocap.run_stages(rendered, method, score, gate=4.0)
+        r = mocap.summarise(score)
+        assert r["frames"] == 6 and r["visible"] > 30
+        assert r["detected"] > 80.0
+        assert r["recall@2.5"] > 80.0
+        assert r["ms_detect+locate_p99"] > 0

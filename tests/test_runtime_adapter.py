@@ -238,3 +238,28 @@ def test_source_paces_by_capture_time(rate: str, lo: float, hi: float) -> None:
     rt.stop()
     assert lo <= dt <= hi  # 4 intervals of 33.3 ms at rate 1
     assert [m.header.frame for m in outputs(bus, IN)] == [0, 1, 2, 3, 4]
+
+
+def test_frame_error_in_core_is_counted_and_other_exceptions_fail_the_worker() -> None:
+    from gaitflow.errors import FrameError
+
+    def step(state: Any, inputs: Any) -> tuple[Any, list]:
+        m = inputs["raw"]
+        if m.header.frame == 1:
+            raise FrameError("frame 1", "unreadable")
+        if m.header.frame == 3:
+            raise RuntimeError("bug")
+        return state, [m]
+
+    spec = StageSpec("flaky", ParamSet("flaky"), lambda p: None, step)
+    bus = FakeBus()
+    rt = StageRuntime(bus, RELAY, spec, {}).start()
+    for i in range(3):
+        bus.put(IN, frame(i).encode())
+    assert rt.done.wait(0.3) is False  # a FrameError does not stop the worker
+    bus.put(IN, frame(3).encode())
+    assert rt.done.wait(5)
+    with pytest.raises(StageError, match="bug"):
+        rt.stop()
+    assert [m.header.frame for m in outputs(bus)] == [0, 2]
+    assert metric(rt, "gaitflow_stage_errors_total") == 1

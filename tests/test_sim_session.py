@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -206,3 +207,28 @@ def test_spatiotemporal_parameters_plausible(ses) -> None:
     _, gt = rec.frame(k)
     if abs(rec.times.time_s[k] - t_ev) < 0.5 / 30:
         assert [ev[2]["side"], ev[2]["kind"]] in [e[:2] for e in gt.events]
+
+
+@pytest.mark.parametrize("trial", list_trials())
+def test_walk_events_alternate_on_every_trial(trial: str) -> None:
+    """Source plus copied events form a regular L/R sequence on both passes."""
+    ses = simulate_session(trial, seed=0, config=SimConfig.quick())
+    summ = ses.truth_summary("walk-01")
+    wm = ses.recordings["walk-01"].motion
+    for p in ("out", "back"):
+        ev = [e for e in summ["events"] if e["pass"] == p]
+        fs = [e["side"] for e in ev if e["kind"] == "FS"]
+        fo = [e["side"] for e in ev if e["kind"] == "FO"]
+        assert len(fs) >= 4 and len(fo) >= 4
+        assert all(a != b for a, b in itertools.pairwise(fs))
+        assert all(a != b for a, b in itertools.pairwise(fo))
+        # Every event lies within its pass, and the source's own events are all there.
+        ps = next(q for q in summ["passes"] if q["name"] == p)
+        assert all(ps["start_s"] <= e["time_s"] <= ps["end_s"] for e in ev)
+        assert sum(not e["copied"] for e in ev) == len(wm.trial.events)
+    # The subject starts and ends each pass outside the image.
+    for p in wm.passes:
+        for t in (p.t0, p.t0 + wm.pass_dur):
+            m = ses.renderer.to_cam(wm.markers_caps(np.array([t]))[0][0])
+            uv = ses.camera.project(m)
+            assert not ((uv[:, 0] >= 0) & (uv[:, 0] < 512)).any()

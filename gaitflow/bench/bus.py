@@ -223,7 +223,7 @@ def run_bench(
             else f"  extra: {{transport/shared_memory/enabled: {str(shm == 'on').lower()}}}\n"
         )
         cfg.write_text(
-            f"bus:\n  site: {SITE}\n{extra}runtime:\n  queue_policy: block\n  shm: {shm}\n"
+            f"bus:\n  site: {SITE}\n{extra}runtime:\n  queue_policy: block\n  shm: '{shm}'\n"
         )
         ep = local_endpoint()
         router = _spawn(

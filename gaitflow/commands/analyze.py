@@ -104,14 +104,16 @@ def run_bus_session(
     params: Mapping[str, Mapping[str, Any]] | None = None,
     quiet: bool = True,
     timeout_s: float = 600.0,
-    idle_s: float = 30.0,
+    idle_s: float = 8.0,
 ) -> dict[str, dict[str, Any]]:
     """Every recording of a session folder through the pipeline as processes on the bus.
 
     A router and every stage but ``grab`` start first (``Launcher``); once all are ready
     and our subscriber is in place, ``grab`` starts with ``source=session`` and publishes at
     full speed. Returns trial -> the final results document, once every walk has one, the
-    pipeline went quiet for ``idle_s`` after the source finished, or ``timeout_s`` passed.
+    pipeline went quiet for ``idle_s`` after the source finished (no message on any per-frame
+    stream: a walk in which nobody was seen may give no summary at all), or ``timeout_s``
+    passed.
     """
     from gaitflow.bus import Bus
     from gaitflow.bus.keys import stream_selector
@@ -160,6 +162,10 @@ def run_bus_session(
                     if msg.results.get("scope") == "trial":
                         summaries[msg.header.trial] = msg.results
 
+            def on_busy(key: str, payload: bytes) -> None:
+                with lock:
+                    last_msg[0] = time.monotonic()
+
             def on_gait(key: str, payload: bytes) -> None:
                 with lock:
                     last_msg[0] = time.monotonic()
@@ -167,6 +173,9 @@ def run_bus_session(
 
             bus.subscribe(stream_selector(graph.site, "summary"), on_summary)
             bus.subscribe(stream_selector(graph.site, "gait"), on_gait)
+            # small per-frame streams upstream of gait: they show the pipeline is still busy
+            for stream in ("markers", "calstatus", "model", "labelled"):
+                bus.subscribe(stream_selector(graph.site, stream), on_busy)
             time.sleep(0.3)  # let the subscriptions reach the router before frames flow
             src = Launcher(
                 graph, stages=sources, endpoint=endpoint, router=False, config=cfg, echo=False

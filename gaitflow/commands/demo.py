@@ -43,13 +43,19 @@ def _render(job: tuple[str, int, bool]) -> Any:
     return raw  # ground truth stays in the worker: the pipeline never sees it
 
 
+def _render_with_truth(job: tuple[str, int, bool]) -> Any:
+    name, k, last = job
+    return _WORKER["ses"].recordings[name].frame(k, last=last)  # (raw, truth): for scoring
+
+
 def rendered_frames(
-    trial: str, seed: int, quick: bool, jobs: int
+    trial: str, seed: int, quick: bool, jobs: int, with_truth: bool = False
 ) -> tuple[list[tuple[str, int]], Iterator[Any]]:
     """(recording, frame count) in protocol order, and the RawFrames of all of them in order.
 
     With ``jobs > 1`` frames are rendered by that many worker processes (the simulator is
-    deterministic per seed, recording and frame, so the frames are identical).
+    deterministic per seed, recording and frame, so the frames are identical). With
+    ``with_truth`` the items are ``(RawFrame, GroundTruth)`` pairs (benchmarks only).
     """
     from gaitflow.sim import SimConfig, simulate_session
 
@@ -60,13 +66,14 @@ def rendered_frames(
 
     def serial() -> Iterator[Any]:
         for name, k, last in work:
-            yield ses.recordings[name].frame(k, last=last)[0]
+            pair = ses.recordings[name].frame(k, last=last)
+            yield pair if with_truth else pair[0]
 
     def pooled() -> Iterator[Any]:
         with ProcessPoolExecutor(
             jobs, initializer=_init_worker, initargs=(trial, seed, quick)
         ) as ex:
-            yield from ex.map(_render, work, chunksize=4)
+            yield from ex.map(_render_with_truth if with_truth else _render, work, chunksize=4)
 
     return plan, (pooled() if jobs > 1 else serial())
 

@@ -41,8 +41,10 @@ def _colour_depth(depth: np.ndarray, lo: float = 500.0, hi: float = 4500.0) -> n
     return img
 
 
-def preview_strip(tiles: list[tuple[str, np.ndarray, np.ndarray]]) -> np.ndarray:
-    """A BGR image: one column per (label, ir, depth), IR above depth."""
+def preview_strip(
+    tiles: list[tuple[str, np.ndarray, np.ndarray]], scale: float = 0.6
+) -> np.ndarray:
+    """A BGR image: one column per (label, ir, depth), IR above depth, scaled by ``scale``."""
     import cv2
 
     cols = []
@@ -50,7 +52,9 @@ def preview_strip(tiles: list[tuple[str, np.ndarray, np.ndarray]]) -> np.ndarray
         top = cv2.cvtColor(_stretch_ir(ir), cv2.COLOR_GRAY2BGR)
         bot = _colour_depth(depth)
         col = np.vstack([top, bot])
-        cv2.putText(col, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1)
+        if scale != 1.0:
+            col = cv2.resize(col, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        cv2.putText(col, label, (5, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1)
         cols.append(col)
         cols.append(np.full((col.shape[0], 4, 3), 255, np.uint8))
     return np.hstack(cols[:-1])
@@ -128,21 +132,30 @@ def write_session(
         import cv2
 
         preview.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(preview), preview_strip(tiles)):
+        strip = preview_strip(tiles)
+        if not cv2.imwrite(str(preview), strip, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
             raise InputError(preview, "could not write the preview PNG")
         log(f"preview: {preview}")
     return stats
 
 
 def _preview_picks(name: str, rec: Any, max_frames: int | None) -> set[int]:
+    """Frames worth showing: the last calibration frame, mid static, walk passes."""
     n = len(rec) if max_frames is None else min(len(rec), max_frames)
     if name == "calibration":
         return {n - 1}
     if name == "static":
         return {n // 2}
-    if name == "walk-01":
-        return {int(n * f) for f in (0.2, 0.35, 0.7, 0.85)}
-    return set()
+    if name != "walk-01":
+        return set()
+    m = rec.motion
+    speed = m.cfg.speed_factor
+    times = []
+    for p, fracs in zip(m.passes, ((0.3, 0.7), (0.5,)), strict=True):
+        for f in fracs:
+            times.append(p.t0 + (p.pre + f * m.src_dur) / speed)
+    idx = {int(np.argmin(np.abs(rec.times.time_s - t))) for t in times}
+    return {k for k in idx if k < n}
 
 
 def run(args: argparse.Namespace) -> int:

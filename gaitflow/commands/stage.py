@@ -9,6 +9,7 @@ import os
 import sys
 
 from gaitflow.bus import Bus
+from gaitflow.errors import BusError
 from gaitflow.stages import graph as graph_mod
 from gaitflow.stages.runtime import StageConfig, serve
 
@@ -91,11 +92,17 @@ def run(args: argparse.Namespace) -> int:
     def ready(msg: str) -> None:
         print(f"gaitflow stage {args.name}: {msg}", flush=True)
 
-    return serve(
-        node,
-        lambda: Bus(bus_cfg, shm=opt.shm),
-        cfg.params_for(args.name),
-        opt,
-        on_ready=ready,
-        restarts=restarts,
-    )
+    try:
+        return serve(
+            node,
+            lambda: Bus(bus_cfg, shm=opt.shm),
+            cfg.params_for(args.name),
+            opt,
+            on_ready=ready,
+            restarts=restarts,
+        )
+    except BusError as exc:
+        # The bus may come back (a router restarting): exit 1 so a launcher retries,
+        # unlike configuration errors (exit 2).
+        print(f"gaitflow stage: error: {exc}", file=sys.stderr)
+        return 1

@@ -13,8 +13,9 @@ Rules for markers a source trial lacks (all documented in docs/readme/simulator.
   ~25 mm soft tissue) + marker radius, 15 mm down the thigh axis.
 - **PSI** from SACR: SACR -/+ 0.18 PW along the pelvis lateral axis (inter-PSIS distance
   about 0.36 PW); **SACR** from PSI: their midpoint.
-- **HEE** from ANK and TOE: 0.42 |TOE - ANK| behind the ankle along the foot axis, 25 mm
-  lower, 20 mm medial (the posterior calcaneus, measured on the trials that have heels).
+- **HEE** from ANK and TOE: 0.27 |TOE - ANK| behind the ankle along the ankle-toe axis,
+  43 mm below it and 48 mm medial (medians over the 48 feet with heel markers in
+  ../shared/gaitdata; median 6-37 mm from the real heel marker on the bundled trials).
 - **SHO** from C7: C7 -/+ 0.13 H lateral and 0.02 H lower; without C7 from the pelvis
   centre: 0.27 H up (Winter 2009 segment proportions; H = stature estimated as ASIS
   height / 0.55).
@@ -40,30 +41,31 @@ from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 SIDES = ("L", "R")
 REQUIRED = ("ASI", "THI", "KNE", "TIB", "ANK", "TOE")
 
-# Capsule segments of the body; ``skin`` marks bare skin (head, forearms), the rest is
-# clothing. Attached markers decide the radius (see :func:`_fit_radii`).
-SEGMENTS: tuple[tuple[str, float, bool, tuple[str, ...]], ...] = (
-    # name, nominal radius mm, skin, markers that must stay outside
-    ("pelvis", 95.0, False, ("L_ASI", "R_ASI", "L_HIP", "R_HIP", "L_PSI", "R_PSI")),
-    ("sacrum", 60.0, False, ("L_PSI", "R_PSI", "L_ASI", "R_ASI")),
-    ("trunk", 125.0, False, ("L_SHO", "R_SHO", "L_PSI", "R_PSI", "L_ASI", "R_ASI")),
-    ("shoulders", 55.0, False, ("L_SHO", "R_SHO")),
-    ("neck", 50.0, True, ("L_SHO", "R_SHO")),
-    ("head", 95.0, True, ()),
-    ("L_thigh", 80.0, False, ("L_THI", "L_HIP")),
-    ("R_thigh", 80.0, False, ("R_THI", "R_HIP")),
-    ("L_thigh_lo", 58.0, False, ("L_THI", "L_KNE")),
-    ("R_thigh_lo", 58.0, False, ("R_THI", "R_KNE")),
-    ("L_shank", 55.0, False, ("L_TIB", "L_KNE")),
-    ("R_shank", 55.0, False, ("R_TIB", "R_KNE")),
-    ("L_shank_lo", 38.0, False, ("L_TIB", "L_ANK")),
-    ("R_shank_lo", 38.0, False, ("R_TIB", "R_ANK")),
-    ("L_foot", 26.0, False, ("L_HEE", "L_TOE")),
-    ("R_foot", 26.0, False, ("R_HEE", "R_TOE")),
-    ("L_upperarm", 45.0, False, ("L_SHO",)),
-    ("R_upperarm", 45.0, False, ("R_SHO",)),
-    ("L_forearm", 38.0, True, ()),
-    ("R_forearm", 38.0, True, ()),
+# Capsule segments of the body and their surface material for the IR albedo: a gait-lab
+# subject in a T-shirt and shorts, legs and feet bare (Plug-in Gait markers go on the skin).
+# The markers listed must stay outside the segment (see :func:`build_body`).
+SEGMENTS: tuple[tuple[str, float, str, tuple[str, ...]], ...] = (
+    # name, nominal radius mm, material, markers that must stay outside
+    ("pelvis", 95.0, "shorts", ("L_ASI", "R_ASI", "L_HIP", "R_HIP", "L_PSI", "R_PSI")),
+    ("sacrum", 60.0, "shorts", ("L_PSI", "R_PSI", "L_ASI", "R_ASI")),
+    ("trunk", 125.0, "shirt", ("L_SHO", "R_SHO", "L_PSI", "R_PSI", "L_ASI", "R_ASI")),
+    ("shoulders", 55.0, "shirt", ("L_SHO", "R_SHO")),
+    ("neck", 50.0, "skin", ("L_SHO", "R_SHO")),
+    ("head", 95.0, "skin", ()),
+    ("L_thigh", 80.0, "shorts", ("L_THI", "L_HIP")),
+    ("R_thigh", 80.0, "shorts", ("R_THI", "R_HIP")),
+    ("L_thigh_lo", 58.0, "skin", ("L_THI", "L_KNE")),
+    ("R_thigh_lo", 58.0, "skin", ("R_THI", "R_KNE")),
+    ("L_shank", 55.0, "skin", ("L_TIB", "L_KNE")),
+    ("R_shank", 55.0, "skin", ("R_TIB", "R_KNE")),
+    ("L_shank_lo", 38.0, "skin", ("L_TIB", "L_ANK")),
+    ("R_shank_lo", 38.0, "skin", ("R_TIB", "R_ANK")),
+    ("L_foot", 26.0, "skin", ("L_HEE", "L_TOE")),
+    ("R_foot", 26.0, "skin", ("R_HEE", "R_TOE")),
+    ("L_upperarm", 45.0, "shirt", ("L_SHO",)),
+    ("R_upperarm", 45.0, "shirt", ("R_SHO",)),
+    ("L_forearm", 38.0, "skin", ()),
+    ("R_forearm", 38.0, "skin", ()),
 )
 SEGMENT_NAMES = tuple(s[0] for s in SEGMENTS)
 SEGMENT_INDEX = {n: i for i, n in enumerate(SEGMENT_NAMES)}
@@ -225,14 +227,16 @@ def derive_markers(trial: Trial, marker_radius: float) -> dict[str, np.ndarray]:
     stature = float(np.nanmedian(m["L_ASI"][:, 2] + m["R_ASI"][:, 2]) / 2 / 0.55)
     for side, sgn in (("L", 1.0), ("R", -1.0)):
         lat = sgn * pf.left  # outward for this side
-        # Heel from the foot axis when the source has none.
+        # Heel from the foot axis when the source has none: the median heel position in
+        # the ankle-toe frame over the 48 feet of ../shared/gaitdata that carry heels.
         if f"{side}_HEE" not in m:
             ank, toe = m[f"{side}_ANK"], m[f"{side}_TOE"]
             ax = toe - ank
             length = np.linalg.norm(ax, axis=1, keepdims=True)
             fwd = _unit(ax)
-            down = _unit(np.cross(fwd, lat) * sgn * -1.0)
-            m[f"{side}_HEE"] = ank - 0.42 * length * fwd + 25.0 * down - 20.0 * lat
+            out = _unit(lat - (lat * fwd).sum(axis=1, keepdims=True) * fwd)
+            up = sgn * np.cross(fwd, out)
+            m[f"{side}_HEE"] = ank - 0.27 * length * fwd - 43.0 * up - 48.0 * out
         hjc = pf.hjc[side]
         # Joint centres medial of the lateral markers by half the joint width plus the
         # marker radius, as in Plug-in Gait (knee width 100 mm, ankle width 70 mm).
@@ -274,8 +278,8 @@ class Body:
     markers : (F, 20, 3) marker centres (MARKER_NAMES order).
     cap_a, cap_b : (F, S, 3) capsule end points (SEGMENT_NAMES order).
     radius : (S,) capsule radii.
-    skin : (S,) bool, bare skin (else clothing) for the IR albedo.
-    heel : (F, 2, 3) L/R heel marker centres (same as markers, for convenience).
+    material : (S,) str, surface material per capsule ("skin", "shirt", "shorts").
+    stature : estimated stature H in mm (ASIS height / 0.55).
     """
 
     t: np.ndarray
@@ -283,7 +287,7 @@ class Body:
     cap_a: np.ndarray
     cap_b: np.ndarray
     radius: np.ndarray
-    skin: np.ndarray
+    material: np.ndarray
     stature: float
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -422,7 +426,7 @@ def build_body(
         normal = _unit(p - (a + w[:, None] * ab))
         markers[:, MARKER_INDEX[name]] = p + (0.0 if site == "HIP" else grow) * normal
     radii = np.empty(len(SEGMENTS))
-    for k, (name, nominal, _skin, keep_out) in enumerate(SEGMENTS):
+    for k, (name, nominal, _material, keep_out) in enumerate(SEGMENTS):
         a, b = ends[name]
         r = nominal
         for mk in keep_out:
@@ -431,8 +435,16 @@ def build_body(
         radii[k] = max(r, 25.0)
     cap_a = np.stack([ends[n][0] for n in SEGMENT_NAMES], axis=1)
     cap_b = np.stack([ends[n][1] for n in SEGMENT_NAMES], axis=1)
-    skin = np.array([s[2] for s in SEGMENTS])
-    return Body(trial.t.copy(), markers, cap_a, cap_b, radii, skin, float(m["_stature"][0, 0]))
+    # A marker sphere cannot sink into the floor: lift the subject when the source's floor
+    # level (lab calibration, smaller markers) would put one below it.
+    lift = max(0.0, marker_radius + 1.0 - float(np.nanmin(markers[..., 2])))
+    if lift > 0:
+        markers[..., 2] += lift
+        cap_a[..., 2] += lift
+        cap_b[..., 2] += lift
+    material = np.array([s[2] for s in SEGMENTS])
+    stature = float(m["_stature"][0, 0])
+    return Body(trial.t.copy(), markers, cap_a, cap_b, radii, material, stature)
 
 
 def knee_flexion(markers: np.ndarray) -> np.ndarray:

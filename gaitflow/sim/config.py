@@ -38,7 +38,8 @@ class SimConfig:
     # IR radiometry: I = ir_gain * albedo * cos(incidence) / (r / 1 m)^2 * vignetting.
     ir_gain: float = 30000.0
     skin_albedo: float = 0.55
-    clothes_albedo: float = 0.4
+    clothes_albedo: float = 0.45  # T-shirt (and the operator's clothes)
+    shorts_albedo: float = 0.25  # dark shorts
     floor_albedo: float = 0.3
     wall_albedo: float = 0.45
     marker_gain: float = 4.0  # marker radiance at 2.5 m, in multiples of saturation
@@ -72,6 +73,7 @@ class SimConfig:
     turn_s: float = 1.5
     lead_in_s: float = 0.3  # still standing before each pass
     n_walks: int = 1
+    walk_margin_mm: float = 1000.0  # each pass starts and ends this far outside the image
     show_operator: bool = True
 
     def __post_init__(self) -> None:

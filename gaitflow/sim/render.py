@@ -71,7 +71,7 @@ def camera_rotation(tilt_deg: float, pan_deg: float, roll_deg: float) -> np.ndar
 def capsule_hit(
     rd: np.ndarray, a: np.ndarray, b: np.ndarray, r: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-capsule intersection for rays from the origin.
+    """Ray-capsule intersection for rays from the origin (analytic, after I. Quilez).
 
     Parameters
     ----------
@@ -82,7 +82,7 @@ def capsule_hit(
     Returns
     -------
     t : (N,) ray length to the first hit, inf where missed.
-    normal : (N, 3) unit outward normal at the hit (undefined where missed).
+    cos_inc : (N,) cosine of the incidence angle at the hit (0 where missed).
     """
     ba = b - a
     oa = -a
@@ -93,32 +93,37 @@ def capsule_hit(
     oaoa = oa @ oa
     qa = baba - bard * bard
     qb = baba * rdoa - baoa * bard
-    qc = baba * oaoa - baoa * baoa - r * r * baba
-    h = qb * qb - qa * qc
+    h = qb * qb - qa * (baba * oaoa - baoa * baoa - r * r * baba)
     t = np.full(len(rd), np.inf)
-    hit = h >= 0
+    cos_inc = np.zeros(len(rd))
+    idx = np.flatnonzero(h >= 0)
+    if len(idx) == 0:
+        return t, cos_inc
+    # Only the rays that meet the infinite cylinder can meet the capsule.
+    rdi, bardi, qbi, qai = rd[idx], bard[idx], qb[idx], qa[idx]
     with np.errstate(divide="ignore", invalid="ignore"):
-        tc = (-qb - np.sqrt(np.where(hit, h, 0.0))) / qa
-    y = baoa + tc * bard
-    body = hit & (y > 0) & (y < baba) & (tc > 0)
-    t[body] = tc[body]
-    caps = hit & ~body
+        tc = (-qbi - np.sqrt(h[idx])) / qai
+    y = baoa + tc * bardi
+    body = (y > 0) & (y < baba) & (tc > 0)
+    ti = np.where(body, tc, np.inf)
+    caps = ~body
     if caps.any():
         oc = np.where((y <= 0)[caps, None], oa, -b)
-        rdc = rd[caps]
+        rdc = rdi[caps]
         cb = (rdc * oc).sum(axis=1)
-        cc = (oc * oc).sum(axis=1) - r * r
-        hh = cb * cb - cc
+        hh = cb * cb - ((oc * oc).sum(axis=1) - r * r)
         ok = hh > 0
         tcap = -cb - np.sqrt(np.where(ok, hh, 0.0))
-        ok &= tcap > 0
-        idx = np.flatnonzero(caps)[ok]
-        t[idx] = tcap[ok]
-    p = rd * np.where(np.isfinite(t), t, 0.0)[:, None]
+        ti[caps] = np.where(ok & (tcap > 0), tcap, np.inf)
+    hit = np.isfinite(ti)
+    p = rdi[hit] * ti[hit, None]
     w = np.clip(((p - a) @ ba) / max(baba, 1e-9), 0.0, 1.0)
     n = p - (a + w[:, None] * ba)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
-    return t, n
+    hit_idx = idx[hit]
+    t[hit_idx] = ti[hit]
+    cos_inc[hit_idx] = np.clip(-(rdi[hit] * n).sum(axis=1), 0.0, 1.0)
+    return t, cos_inc
 
 
 @dataclass
@@ -171,6 +176,11 @@ class Renderer:
         self.dx_dv = np.gradient(self.rx, axis=0)
         self.dy_du = np.gradient(self.ry, axis=1)
         self.dy_dv = np.gradient(self.ry, axis=0)
+        off = (np.arange(cfg.supersample) + 0.5) / cfg.supersample - 0.5
+        du, dv = np.meshgrid(off, off)
+        self._sub = (du.ravel()[:, None], dv.ravel()[:, None])
+        self._rd = np.stack([self.rx, self.ry, np.ones_like(self.rx)], axis=-1)
+        self._rd /= self.rlen[..., None]
         # Radial illumination fall-off towards the image corners.
         rr = np.hypot(self.rx, self.ry)
         self.vignette = 1.0 - cfg.vignetting * (rr / rr.max()) ** 2
@@ -191,8 +201,8 @@ class Renderer:
         return np.r_[n, d]
 
     def _unit_rays(self, sl: tuple[slice, slice]) -> np.ndarray:
-        rx, ry, rl = self.rx[sl], self.ry[sl], self.rlen[sl]
-        return np.stack([rx / rl, ry / rl, 1.0 / rl], axis=-1).reshape(-1, 3)
+        """Unit ray directions (N, 3) of the pixels in a box, row-major."""
+        return self._rd[sl].reshape(-1, 3)
 
     def _background(self) -> None:
         cfg = self.cfg
@@ -219,6 +229,7 @@ class Renderer:
             albedo[take] = alb
             normal_w[take] = n
         extra = np.zeros((H, W))  # specular / retro-reflective radiance, counts
+        pole_cos = None
         if cfg.stray_reflectors and cfg.back_wall_mm > 0:
             # Retro-reflective safety tape on the back wall: a long thin band, bright but
             # below saturation at that distance.
@@ -232,17 +243,19 @@ class Renderer:
             a = self.to_cam(np.array([-1500.0, wall_y - 400.0, 0.0]))
             b = self.to_cam(np.array([-1500.0, wall_y - 400.0, 1300.0]))
             rd = self._unit_rays((slice(None), slice(None)))
-            t, nrm = capsule_hit(rd, a, b, 14.0)
+            t, cosi = capsule_hit(rd, a, b, 14.0)
             zc = (t * rd[:, 2]).reshape(H, W)
             take = zc < z
-            cosi = np.clip(-(rd * nrm).sum(axis=1), 0, 1).reshape(H, W)
+            cosi = cosi.reshape(H, W)
             z[take] = zc[take]
             albedo[take] = 0.15
-            normal_w[take] = (nrm.reshape(H, W, 3) @ self.R)[take]
+            pole_cos = np.where(take, cosi, 0.0)
             extra[take] += 1.4 * SAT * cosi[take] ** 60
         self.bg_z = z
         unit_w = dirs_w / np.linalg.norm(dirs_w, axis=-1, keepdims=True)
         self.bg_cos = np.clip(-(unit_w * normal_w).sum(axis=-1), 0.0, 1.0)
+        if pole_cos is not None:
+            self.bg_cos = np.where(pole_cos > 0, pole_cos, self.bg_cos)
         r_m = z * self.rlen / 1000.0
         with np.errstate(invalid="ignore"):
             ir = cfg.ir_gain * albedo * self.bg_cos / np.maximum(r_m, 0.1) ** 2
@@ -368,12 +381,12 @@ class Renderer:
                     slice(cb[1].start - u0, cb[1].stop - u0),
                 )
                 rd = self._unit_rays(cb)
-                t, nrm = capsule_hit(rd, a_c[k], b_c[k], r)
+                t, ci = capsule_hit(rd, a_c[k], b_c[k], r)
                 zc = (t * rd[:, 2]).reshape(z[loc].shape)
                 take = zc < z[loc]
                 if not take.any():
                     continue
-                ci = np.clip(-(rd * nrm).sum(axis=1), 0.0, 1.0).reshape(zc.shape)
+                ci = ci.reshape(zc.shape)
                 rm = zc * self.rlen[cb] / 1000.0
                 val = cfg.ir_gain * pose.cap_albedo[k] * ci / np.maximum(rm, 0.1) ** 2
                 val *= self.vignette[cb]
@@ -495,10 +508,7 @@ class Renderer:
         """
         cfg = self.cfg
         rad = cfg.marker_radius_mm
-        s = cfg.supersample
-        off = (np.arange(s) + 0.5) / s - 0.5
-        du, dv = np.meshgrid(off, off)
-        du, dv = du.ravel()[:, None], dv.ravel()[:, None]  # (S2, 1)
+        du, dv = self._sub  # (S2, 1) sub-pixel offsets
         sl = box
         rx = self.rx[sl][..., None, None]
         ry = self.ry[sl][..., None, None]

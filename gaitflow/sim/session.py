@@ -210,8 +210,8 @@ class SimSession:
                     "name": p.name,
                     "start_s": float(p.t0),
                     "end_s": float(p.t0 + wm.pass_dur),
-                    "source_start_s": float(p.t0 + p.pre / cfg.speed_factor),
-                    "source_end_s": float(p.t0 + (p.pre + wm.src_dur) / cfg.speed_factor),
+                    "source_start_s": float(p.t0 + p.pre / wm.cfg.speed_factor),
+                    "source_end_s": float(p.t0 + (p.pre + wm.src_dur) / wm.cfg.speed_factor),
                     "direction_world": (p.R @ [1.0, 0, 0]).tolist(),
                     "side_facing_camera": "R" if p.name == "out" else "L",
                 }
@@ -266,7 +266,7 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
     row = round(cam.cy)
     x_lo = float(renderer.rx[row, 0] * D + D * np.tan(np.radians(cfg.pan_deg)))
     x_hi = float(renderer.rx[row, -1] * D + D * np.tan(np.radians(cfg.pan_deg)))
-    walk = WalkMotion(src, body, cfg, view_x=(x_lo, x_hi))
+    walk = WalkMotion(src, body, cfg, view_x=(x_lo, x_hi), margin_mm=cfg.walk_margin_mm)
     ses.recordings["calibration"] = Recording(
         ses, "calibration", CalibrationMotion(cfg, seed), 0, "calibration"
     )
@@ -277,7 +277,17 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
     ses.recordings["static"] = Recording(
         ses, "static", StaticMotion(src, cfg, start, seed), 1, "static"
     )
+    vary = np.random.default_rng([seed, 99])
     for k in range(cfg.n_walks):
         name = f"walk-{k + 1:02d}"
-        ses.recordings[name] = Recording(ses, name, walk, 2 + k, "walk")
+        motion = walk
+        if k > 0:
+            # Repeated trials differ a little: the subject walks a few cm off the line and a
+            # few % faster or slower (same gait pattern, played at another speed).
+            cfg_k = cfg.with_(
+                walk_distance_mm=cfg.walk_distance_mm + float(vary.normal(0.0, 80.0)),
+                speed_factor=cfg.speed_factor * float(1.0 + vary.normal(0.0, 0.04)),
+            )
+            motion = WalkMotion(src, body, cfg_k, view_x=(x_lo, x_hi), margin_mm=cfg.walk_margin_mm)
+        ses.recordings[name] = Recording(ses, name, motion, 2 + k, "walk")
     return ses

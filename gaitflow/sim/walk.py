@@ -32,7 +32,8 @@ def rot_z(angle: float) -> np.ndarray:
 
 
 def _albedo(body: Body, cfg: SimConfig) -> np.ndarray:
-    return np.where(body.skin, cfg.skin_albedo, cfg.clothes_albedo)
+    table = {"skin": cfg.skin_albedo, "shirt": cfg.clothes_albedo, "shorts": cfg.shorts_albedo}
+    return np.array([table[m] for m in body.material])
 
 
 def _smooth(s: np.ndarray) -> np.ndarray:

@@ -1,0 +1,82 @@
+"""``gaitflow analyze``: bad session folders, the same results inline and over the bus, and a
+walk in which nobody is ever in view."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from gaitflow.cli import main
+from gaitflow.commands.analyze import NO_SUMMARY, analyze_session
+from gaitflow.errors import InputError
+from gaitflow.results import validation_errors
+from gaitflow.session import SessionWriter
+from gaitflow.sim import SimConfig, simulate_session
+
+TRIAL = "btk_PiG_Motion-FlatFoot-Full"
+WALK_FRAMES = 75  # 2.5 s: the subject walks into the view
+
+
+def _frames(rec, ks):
+    for k in ks:
+        raw, _ = rec.frame(k, last=k == len(rec) - 1)
+        yield raw.header.frame, raw.header.capture_ns, raw.ir, raw.depth
+
+
+@pytest.mark.parametrize("missing", ["calibration", "static"])
+def test_missing_recording_folder_is_named(tmp_path: Path, missing: str) -> None:
+    ses = simulate_session(TRIAL, 0, SimConfig.quick())
+    w = SessionWriter(tmp_path / "S", ses.camera_json)
+    present = [n for n in ("calibration", "static") if n != missing]
+    for name in (*present, "walk-01"):
+        w.write_recording(name, _frames(ses.recordings[name], range(2)))
+    with pytest.raises(InputError, match=f"missing recording folder {missing}/"):
+        analyze_session(tmp_path / "S", tmp_path / "out", inline=True)
+    assert main(["analyze", str(tmp_path / "S"), "--out", str(tmp_path / "o"), "--inline"]) == 2
+
+
+@pytest.fixture(scope="module")
+def tiny_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Calibration and static of a quick simulated session; walk-01 = the first 2.5 s of the
+    walk; walk-02 = the empty walkway (the last calibration frames): nobody ever in view."""
+    root = tmp_path_factory.mktemp("analyze") / "S01"
+    ses = simulate_session(TRIAL, 0, SimConfig.quick())
+    w = SessionWriter(root, ses.camera_json)
+    cal = ses.recordings["calibration"]
+    w.write_recording("calibration", _frames(cal, range(len(cal))))
+    st = ses.recordings["static"]
+    w.write_recording("static", _frames(st, range(len(st))))
+    walk = ses.recordings["walk-01"]
+    w.write_recording("walk-01", _frames(walk, range(WALK_FRAMES)))
+    empty = [f for f in _frames(cal, range(len(cal) - 20, len(cal)))]
+    t0 = empty[0][1]
+    w.write_recording(
+        "walk-02", ((k, 5_000_000_000 + ts - t0, ir, d) for k, (_, ts, ir, d) in enumerate(empty))
+    )
+    return root
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_inline_and_bus_give_identical_results(tiny_session: Path, tmp_path: Path) -> None:
+    a = analyze_session(tiny_session, tmp_path / "inline", inline=True)
+    b = analyze_session(tiny_session, tmp_path / "bus", inline=False)
+    assert [o.trial for o in a] == [o.trial for o in b] == ["walk-01", "walk-02"]
+    for oa, ob in zip(a, b, strict=True):
+        ja = json.loads(oa.json_path.read_text())
+        jb = json.loads(ob.json_path.read_text())
+        assert ja == jb, oa.trial
+        assert validation_errors(ja) == []
+        assert oa.html_path.exists() and "<svg" in oa.html_path.read_text()
+    walk = json.loads(a[0].json_path.read_text())
+    assert walk["session"] == "S01" and len(walk["frames"]) == WALK_FRAMES
+    seen = sum(any(v is not None for v in f["markers"].values()) for f in walk["frames"])
+    assert seen > WALK_FRAMES // 3
+    # walk-02: nobody ever in view -> a valid, empty result with a warning, not a crash
+    empty = json.loads(a[1].json_path.read_text())
+    assert empty["events"] == [] and empty["spatiotemporal"]["L"]["stride_length_mm"] == []
+    assert a[1].warnings and any(
+        "never seen" in w or w == NO_SUMMARY or "no walking pass" in w for w in a[1].warnings
+    )

@@ -1,0 +1,124 @@
+"""The gait stage core on labelled markers: passes, events, knee, summaries, bad input.
+
+Input: the simulator's true marker trajectories with noise (``gaitflow.bench.gait``'s
+markers level: no image rendering, so it is fast). Ground truth only scores the output.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gaitflow.schemas import LabelledMarkers
+from gaitflow.stages import gait as gs
+
+from gaitflow.bench import gait as bg
+from gaitflow.results import validation_errors
+from gaitflow.sim import simulate_session
+
+TRIAL = "btk_PiG_Motion-FlatFoot-Full"
+
+
+@pytest.fixture(scope="module")
+def session():
+    ses = simulate_session(TRIAL, 0)
+    name = ses.walks()[0]
+    frames = list(bg._marker_frames(ses, name, noise_mm=3.0, seed=0))
+    return ses, name, frames, bg._true_calibration(ses, name)
+
+
+def run_stage(frames, cal, **params):
+    state = gs.init(gs.PARAMS.resolve(params))
+    outs = []
+    for m in frames:
+        state, o = gs.step(state, {"labelled": m, "calibration": cal})
+        outs.extend(o)
+    state, o = gs.finish(state)
+    return outs + o
+
+
+@pytest.mark.parametrize("rate", [0.03, 0.33])
+def test_two_passes_events_and_knee(session, rate):
+    ses, name, frames, cal = session
+    outs = run_stage(frames, cal, xi=rate, phi=rate)
+    gait = [o for o in outs if o.STREAM == "gait"]
+    summaries = [o for o in outs if o.STREAM == "summary"]
+    assert len(gait) == len(frames)
+    assert np.all(np.diff([g.time_s for g in gait]) > 0)
+    scopes = [s.results["scope"] for s in summaries]
+    assert scopes[-1] == "trial" and scopes.count("trial") == 1 and "pass" in scopes
+    doc = summaries[-1].results
+    assert validation_errors(doc) == []
+    # out across the view showing the right side, back showing the left
+    assert [p["direction"] for p in doc["passes"]] == [1, -1]
+    assert [p["near_side"] for p in doc["passes"]] == ["R", "L"]
+    truth = bg.observable_events(ses, name)
+    m = bg.match_events(truth, doc["events"])
+    for kind in ("heel_strike", "toe_off"):
+        errs = np.abs(m[kind]["errors_s"])
+        assert m[kind]["miss"] <= 0.2 * m[kind]["n_truth"], m[kind]
+        assert errs.mean() <= 0.033, (kind, errs)
+    t = ses.recordings[name].times.time_s
+    knee, _ = bg._truth_knees(ses, name, t)
+    for k, side in enumerate("LR"):
+        rmse = bg.knee_rmse(t, knee[:, k], doc["knee_flexion_deg"]["time_s"],
+                            doc["knee_flexion_deg"][side])  # fmt: skip
+        assert rmse <= 2.5, (side, rmse)
+    st = doc["spatiotemporal"]
+    for side in "LR":
+        assert st[side]["stride_length_mm"] and st[side]["stance_s"] and st[side]["swing_s"]
+    assert 80 < st["cadence_steps_per_min"] < 150 and 0.8 < st["speed_m_s"] < 1.6
+
+
+def test_live_events_are_confirmed_by_the_final_result(session):
+    _, _, frames, cal = session
+    outs = run_stage(frames, cal)
+    live = [e for o in outs if o.STREAM == "gait" for e in o.events]
+    final = outs[-1].results["events"]
+    assert len(live) >= len(final) - 2
+    for side, kind, t in live:
+        near = [e for e in final if e["side"] == side and e["kind"] == kind]
+        assert near and min(abs(e["time_s"] - t) for e in near) <= 0.1
+
+
+def test_subject_never_in_view_gives_an_empty_result_with_a_warning(session):
+    _, _, frames, cal = session
+    blank = [
+        LabelledMarkers(
+            header=m.header,
+            position=np.full((20, 3), np.nan),
+            pixel=np.full((20, 2), np.nan),
+            blob=np.full(20, -1, dtype=np.int32),
+        )
+        for m in frames[:60]
+    ]
+    outs = run_stage(blank, cal)
+    doc = outs[-1].results
+    assert outs[-1].STREAM == "summary" and doc["scope"] == "trial"
+    assert doc["events"] == [] and doc["passes"] == []
+    assert any("never seen" in w for w in doc["warnings"]) and outs[-1].warnings
+    assert validation_errors(doc) == []
+
+
+def test_a_new_trial_closes_the_open_one(session):
+    _, _, frames, cal = session
+    import dataclasses
+
+    first = [dataclasses.replace(m, header=dataclasses.replace(m.header, last=False))
+             for m in frames[:90]]  # fmt: skip
+    state = gs.init(gs.PARAMS.resolve({}))
+    for m in first:
+        state, _ = gs.step(state, {"labelled": m, "calibration": cal})
+    hdr = dataclasses.replace(frames[0].header, trial="walk-02")
+    other = dataclasses.replace(frames[0], header=hdr)
+    state, outs = gs.step(state, {"labelled": other, "calibration": cal})
+    closed = [o for o in outs if o.STREAM == "summary" and o.results["scope"] == "trial"]
+    assert len(closed) == 1 and closed[0].header.trial == frames[0].header.trial
+    assert len(state.frames) == 1 and state.frames[0].header.trial == "walk-02"
+
+
+def test_parameters_are_declared_with_table_one_defaults():
+    d = gs.PARAMS.defaults()
+    assert (d["gamma"], d["xi"], d["phi"], d["tau"]) == (0.05, 0.03, 0.03, 3)
+    assert d["resample_hz"] == 100.0 and d["max_gap_s"] == 0.3
+    with pytest.raises(Exception, match="refine"):
+        gs.PARAMS.resolve({"refine": "magic"})

@@ -1,0 +1,80 @@
+"""Simulated subject: derived-marker rules and the capsule body."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+from gaitflow.sim.body import (
+    SEGMENT_INDEX,
+    build_body,
+    derive_markers,
+    load_trial,
+    pelvis_frame,
+)
+
+
+def test_harrington_hip_joint_centre() -> None:
+    # A pelvis facing +x, left = +y, up = +z: PW = 240, PD = 160.
+    pw, pd = 240.0, 160.0
+    m = {
+        "L_ASI": np.array([[0.0, pw / 2, 900.0]]),
+        "R_ASI": np.array([[0.0, -pw / 2, 900.0]]),
+        "L_PSI": np.array([[-pd, 40.0, 900.0]]),
+        "R_PSI": np.array([[-pd, -40.0, 900.0]]),
+    }
+    pf = pelvis_frame(m)
+    assert pf.width == pytest.approx(pw) and pf.depth == pytest.approx(pd)
+    want_l = [-0.24 * pd - 9.9, 0.33 * pw + 7.3, 900.0 - 0.30 * pw - 10.9]
+    np.testing.assert_allclose(pf.hjc["L"][0], want_l, atol=1e-9)
+    np.testing.assert_allclose(pf.hjc["R"][0], [want_l[0], -want_l[1], want_l[2]], atol=1e-9)
+
+
+def test_derived_markers_follow_the_rules() -> None:
+    tr = load_trial("bz_HC002D_straight_HC002D06")  # has SACR but no PSI
+    assert "L_PSI" not in tr.markers
+    m = derive_markers(tr, 12.5)
+    pf = pelvis_frame({k: tr.markers[k] for k in ("L_ASI", "R_ASI", "SACR")})
+    gap = np.linalg.norm(m["L_PSI"] - m["R_PSI"], axis=1)
+    np.testing.assert_allclose(gap, 0.36 * pf.width, rtol=1e-6)
+    np.testing.assert_allclose(0.5 * (m["L_PSI"] + m["R_PSI"]), tr.markers["SACR"], atol=1e-6)
+    # HIP lies lateral of the hip joint centre by the trochanter offset.
+    for side, sgn in (("L", 1), ("R", -1)):
+        d = m[f"{side}_HIP"] - m[f"{side}_HJC"]
+        lateral = sgn * (d * pf.left).sum(axis=1)
+        np.testing.assert_allclose(lateral, 85.0 + 12.5, atol=5.0)
+
+
+@pytest.mark.parametrize("trial", ["btk_PiG_Motion-FlatFoot-Full", "c3dorg_s00_vicon_CGM24"])
+def test_heel_rule_close_to_real_heel(trial: str) -> None:
+    tr = load_trial(trial)
+    m = {k: v for k, v in tr.markers.items() if not k.endswith("_HEE")}
+    d = derive_markers(dataclasses.replace(tr, markers=m), 7.0)
+    for side in ("L", "R"):
+        err = np.linalg.norm(d[f"{side}_HEE"] - tr.markers[f"{side}_HEE"], axis=1)
+        assert np.median(err) < 40.0
+
+
+def test_markers_sit_outside_their_segment() -> None:
+    tr = load_trial("btk_PiG_Motion-FlatFoot-Full")
+    body = build_body(tr, 12.5)
+    assert body.markers.shape == (len(tr.t), 20, 3)
+    assert np.isfinite(body.markers).all()
+    # The near-side knee marker is outside the lower thigh and shank by at least its radius.
+    for side in ("L", "R"):
+        p = body.markers[:, MARKER_INDEX[f"{side}_KNE"]]
+        k = SEGMENT_INDEX[f"{side}_thigh_lo"]
+        a, b, r = body.cap_a[:, k], body.cap_b[:, k], body.radius[k]
+        ab = b - a
+        w = np.clip(((p - a) * ab).sum(1) / (ab * ab).sum(1), 0, 1)
+        dist = np.linalg.norm(p - (a + w[:, None] * ab), axis=1)
+        assert np.percentile(dist - r, 5) >= 12.5
+    # Feet on the floor: the heels come within a few cm of z = 0 in stance, but no marker
+    # sphere sinks into it.
+    hee = body.markers[:, [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]], 2]
+    assert 12.5 <= hee.min() < 60.0
+    assert body.markers[..., 2].min() >= 12.5
+    assert len(MARKER_NAMES) == 20
