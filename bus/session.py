@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -103,7 +104,14 @@ class Bus:
         self._handles: list[Handle] = []
         self._shm: Any = None
         if shm == "on":
-            self._shm = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
+            try:
+                self._shm = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
+            except zenoh.ZError as exc:
+                self.session.close()
+                raise BusError(
+                    f"cannot create a {SHM_POOL_BYTES >> 20} MB shared-memory pool "
+                    f"(is /dev/shm large enough?): {exc}"
+                ) from exc
         self.callback_errors = 0
         self.shm_fallbacks = 0
         self._closed = False
@@ -203,13 +211,20 @@ class Bus:
         return self._track(Handle(sub))
 
     def alive(self, selector: str, timeout: float = 1.0) -> list[str]:
-        """Keys of the liveliness tokens matching ``selector`` right now."""
-        replies = self.session.liveliness().get(selector, timeout=timeout)
-        keys = []
-        for r in replies:
-            if r.ok is not None:
-                keys.append(str(r.ok.key_expr))
-        return sorted(set(keys))
+        """Keys of the liveliness tokens matching ``selector`` right now.
+
+        Under heavy load a liveliness query was seen (rarely) to complete empty although a
+        token was up; an empty answer is therefore asked again once, 50 ms later.
+        """
+        for attempt in range(2):
+            keys = set()
+            for r in self.session.liveliness().get(selector, timeout=timeout):
+                if r.ok is not None:
+                    keys.add(str(r.ok.key_expr))
+            if keys or attempt:
+                return sorted(keys)
+            time.sleep(0.05)
+        return []
 
     def _track(self, h: Handle) -> Handle:
         with self._lock:

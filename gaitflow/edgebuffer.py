@@ -28,7 +28,9 @@ Times: ``time.monotonic()`` seconds for link bookkeeping; payload headers carry 
 from __future__ import annotations
 
 import bisect
+import json
 import logging
+import os
 import signal
 import threading
 import time
@@ -47,6 +49,9 @@ from gaitflow.schemas import peek_header
 
 log = logging.getLogger("gaitflow.edgebuffer")
 
+# How often the uplink records how far it got (a restart resends at most this much).
+CURSOR_SAVE_S = 0.5
+
 
 # --------------------------------------------------------------------------- ring
 
@@ -62,18 +67,26 @@ class _Segment:
 class Ring:
     """An append-only sequence of bus payloads kept as MCAP segments in ``directory``.
 
-    Sequence numbers start at 0 and grow by one per appended payload. The open segment is
-    also held in memory (it is not a finished MCAP file yet); closed segments are read back
-    from disk. Thread-safe.
+    Sequence numbers grow by one per appended payload. The open segment is also held in
+    memory (it is not a finished MCAP file yet); closed segments are read back from disk.
+    Thread-safe.
+
+    **Restarts**: segments left by a previous run (a crash, a reboot, an upgrade while the
+    link was down) are kept and numbered from their file names; a segment cut short by a
+    crash is read up to its last complete chunk. The uplink saves how far it got
+    (:meth:`save_cursor`, ``cursor.json``) and resumes from there, so a backlog survives
+    the uplink process.
 
     Parameters
     ----------
-    directory : where segment files ``ring-<first seq>.mcap`` go (created; old segments
-        from a previous run are removed: their frames were forwarded or are the previous
-        run's recording's business).
+    directory : where segment files ``ring-<first seq>.mcap`` go (created).
     max_bytes : evict the oldest closed segments beyond this total size on disk.
     segment_messages : close a segment after this many payloads.
     compression : MCAP chunk compression of the segments.
+
+    Every payload is its own MCAP chunk, handed to the OS as it arrives: a crash of the
+    uplink process loses nothing it had received (a power cut, what the OS had not
+    written yet).
     """
 
     def __init__(
@@ -85,8 +98,6 @@ class Ring:
     ) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
-        for old in self.dir.glob("ring-*.mcap"):
-            old.unlink()
         self.max_bytes = int(max_bytes)
         self.segment_messages = max(1, int(segment_messages))
         self.compression = compression
@@ -98,6 +109,49 @@ class Ring:
         self.next_seq = 0
         self.first_seq = 0
         self.evicted = 0
+        self._resume()
+
+    def _resume(self) -> None:
+        """Take over the segments a previous run left, in sequence order."""
+        found = []
+        for path in self.dir.glob("ring-*.mcap"):
+            try:
+                first = int(path.stem.split("-", 1)[1])
+            except ValueError:
+                log.warning("ring: ignoring %s (not ring-<seq>.mcap)", path)
+                continue
+            found.append((first, path))
+        for first, path in sorted(found):
+            try:
+                count = sum(1 for _ in iter_messages(path))
+            except GaitflowError as exc:
+                log.warning("ring: segment %s unreadable, skipped: %s", path, exc)
+                continue
+            if not self._closed:
+                self.first_seq = first
+            elif first < self.next_seq:
+                log.warning("ring: segment %s overlaps the previous one, skipped", path)
+                continue
+            self._closed.append(_Segment(first, count, path, path.stat().st_size))
+            self.next_seq = first + count
+        self._open_first = self.next_seq
+
+    def save_cursor(self, seq: int) -> None:
+        """Remember that everything before ``seq`` was sent (atomic replace)."""
+        tmp = self.dir / "cursor.json.tmp"
+        tmp.write_text(json.dumps({"next": int(seq)}))
+        os.replace(tmp, self.dir / "cursor.json")
+
+    def load_cursor(self) -> int:
+        """The saved cursor, or the oldest payload kept when there is none."""
+        try:
+            seq = int(json.loads((self.dir / "cursor.json").read_text())["next"])
+        except FileNotFoundError:
+            return self.first_seq
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("ring: unreadable cursor.json (%s): resending everything kept", exc)
+            return self.first_seq
+        return max(self.first_seq, min(seq, self.next_seq))
 
     def _writer_for(self) -> McapWriter:
         if self._writer is None:
@@ -108,7 +162,9 @@ class Ring:
     def append(self, key: str, payload: bytes) -> int:
         """Add one payload; return its sequence number."""
         with self._lock:
-            self._writer_for().write(key, payload)
+            w = self._writer_for()
+            w.write(key, payload)
+            w.flush()
             self._open.append((key, payload))
             seq = self.next_seq
             self.next_seq += 1
@@ -228,6 +284,7 @@ class UplinkStats:
     link_ups: int = 0
     send_errors: int = 0
     evicted_unsent: int = 0
+    cursor_save_errors: int = 0
 
     def line(self) -> str:
         return (
@@ -280,6 +337,7 @@ class Uplink:
         self._sent_times: deque[tuple[float, int]] = deque()
         self._remote: Any = None
         self._max_sent = -1
+        self._saved_at = 0.0
         self._subs: list[Any] = []
         self._thread: threading.Thread | None = None
 
@@ -323,6 +381,9 @@ class Uplink:
         log.warning("uplink %s: server link down; recording to the ring", self.camera)
 
     def start(self) -> Uplink:
+        # Resume after a restart: frames a previous run recorded but did not send go first.
+        self._cursor = self.ring.load_cursor()
+        self._max_sent = self._cursor - 1
         for s in self.streams:
             self._subs.append(
                 self.local.subscribe(stream_key(self.site, self.camera, s), self._on_local)
@@ -355,14 +416,28 @@ class Uplink:
                     self.stats.resent += max(0, self._max_sent + 1 - self._rewind_to)
                     self._cursor = max(self._rewind_to, self.ring.first_seq)
                     self._rewind_to = None
+            self._save_cursor()
             if not self.ring.wait(self._cursor, 0.1):
                 continue
             self._send_available()
+        self._save_cursor(force=True)
+
+    def _save_cursor(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self._saved_at >= CURSOR_SAVE_S:
+            self._saved_at = now
+            try:
+                self.ring.save_cursor(self._cursor)
+            except OSError as exc:
+                # A full disk must not stop forwarding; the cursor is an optimisation.
+                self.stats.cursor_save_errors += 1
+                log.warning("uplink %s: cannot save the ring cursor: %s", self.camera, exc)
 
     def _send_available(self) -> None:
         for seq, key, payload in self.ring.read_from(self._cursor):
             if self._stop.is_set() or not self._up.is_set():
                 return
+            self._save_cursor()
             with self._lock:
                 if self._rewind_to is not None:
                     return

@@ -213,10 +213,11 @@ def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) ->
     """Mark as missing the samples that jump away from their neighbours (a Hampel filter).
 
     A wrongly labelled marker in one or two frames (another marker's blob given this name)
-    sits far from the median of the samples around it, while smooth motion stays close to
-    it. Each sample is compared with the component-wise median of its ``half`` neighbours on
-    each side (the sample itself excluded); beyond ``max_dev_mm`` it becomes NaN, for the gap
-    filler. ``max_dev_mm <= 0`` returns the input.
+    sits far from the median of its neighbours, while smooth motion stays close. Neighbours
+    are taken in symmetric pairs (o = 1..``half`` frames before and after, both seen), so the
+    median does not lag a moving marker; farther than ``max_dev_mm`` from it the sample
+    becomes NaN, for the gap filler. A sample without a seen pair is kept.
+    ``max_dev_mm <= 0`` returns the input.
 
     pos : (F, M, 3) mm, NaN = missing. Returns (F, M, 3).
     """
@@ -227,16 +228,22 @@ def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) ->
         return out
     pad = np.full((half, *pos.shape[1:]), np.nan)
     padded = np.concatenate([pad, pos, pad])
-    neigh = np.stack(
-        [padded[half + o : half + o + n] for o in range(-half, half + 1) if o != 0], axis=0
-    )  # (2 half, F, M, 3)
-    seen = np.isfinite(neigh).all(axis=-1)  # (2 half, F, M)
-    enough = seen.sum(axis=0) >= 2
-    med = np.full(pos.shape, np.nan)
-    if enough.any():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices where not enough
-            med = np.nanmedian(np.where(seen[..., None], neigh, np.nan), axis=0)
+    # the median of the neighbours taken in symmetric pairs (o frames before and after, both
+    # seen): it sits on a smoothly moving marker, and one wrong neighbour cannot drag it
+    parts = []
+    for o in range(1, half + 1):
+        before = padded[half - o : half - o + n]
+        after = padded[half + o : half + o + n]
+        pair = np.isfinite(before).all(axis=-1) & np.isfinite(after).all(axis=-1)
+        parts += [
+            np.where(pair[..., None], before, np.nan),
+            np.where(pair[..., None], after, np.nan),
+        ]
+    neigh = np.stack(parts)  # (2 half, F, M, 3)
+    enough = np.isfinite(neigh[..., 0]).any(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN where not enough
+        med = np.nanmedian(neigh, axis=0)
     dev = np.linalg.norm(pos - med, axis=-1)
     bad = enough & np.isfinite(dev) & (dev > max_dev_mm)
     out[bad] = np.nan
@@ -397,6 +404,7 @@ def inflection_search(
     phi: float = 0.33,
     tau: int = 3,
     max_born: float = 0.25,
+    min_swing: float = 0.5,
 ) -> InflectionResult:
     """Alg. 6 as water-filling: find the flat valleys of a height trajectory.
 
@@ -420,6 +428,8 @@ def inflection_search(
     xi, phi : left and right growth-rate clip rates (Table I: 0.03; text: 0.33).
     tau : minimum range length in samples (Table I: 3).
     max_born : highest normalised level at which a kept range may appear.
+    min_swing : consecutive kept ranges whose separating peak stays below this normalised
+        level are merged (one contact split by the heel's slow rise, not two contacts).
 
     Returns
     -------
@@ -522,6 +532,29 @@ def inflection_search(
         if r.length <= tau or r.born > max_born + 1e-9:
             continue
         kept.append(r)
+    # two contacts of one foot have a swing between them: ranges separated only by a low
+    # bump (the heel's slow rise split one valley at a lock) are one contact
+    merged: list[FlatRange] = []
+    for r in kept:
+        if merged:
+            a = merged[-1]
+            gap = yn[a.right + 1 : r.left]
+            top = float(np.max(gap)) if gap.size else 0.0  # NaN (missing) never merges
+            if top < min_swing and r.left - a.right <= 5:
+                merged[-1] = FlatRange(
+                    a.left,
+                    r.right,
+                    a.left_locked,
+                    r.right_locked,
+                    a.left_open,
+                    r.right_open,
+                    min(a.born, r.born),
+                    a.left_level,
+                    r.right_level,
+                )
+                continue
+        merged.append(r)
+    kept = merged
     peaks = []
     for a, b in itertools.pairwise(kept):
         seg = yn[a.right + 1 : b.left]
@@ -615,8 +648,10 @@ def foot_contacts(
     heel_h = np.asarray(heel_h, dtype=float)
     toe_h = np.asarray(toe_h, dtype=float)
     hr = inflection_search(heel_h, gamma, xi, phi, tau, max_born)
+    # no merging for the toe: its mid-swing clearance dip comes close to the floor, right
+    # after the stance range, and must stay a separate (unpaired) range
     tr = (
-        inflection_search(toe_h, gamma, xi, phi, tau, max_born)
+        inflection_search(toe_h, gamma, xi, phi, tau, max_born, min_swing=0.0)
         if np.isfinite(toe_h).sum() > 1
         else InflectionResult((), (), float("nan"), float("nan"))
     )

@@ -65,12 +65,13 @@ def _arr(xs: Sequence[float | None]) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in xs], dtype=float)
 
 
-def knee_cycles(doc: Mapping[str, Any], side: str, max_missing: float = 0.1) -> np.ndarray:
+def knee_cycles(doc: Mapping[str, Any], side: str, min_known: float = 0.5) -> np.ndarray:
     """Knee flexion of every complete gait cycle of one side, normalised to 101 points.
 
     A cycle runs from a heel strike to the next heel strike of the same foot (the
-    ``cycles`` records of the results). Cycles with more than ``max_missing`` of their
-    samples unknown are left out; shorter holes are interpolated. Returns (C, 101) deg.
+    ``cycles`` records of the results). Points where the knee is unknown stay NaN (a marker
+    hidden for longer than the gap filler bridges); cycles with less than ``min_known`` of
+    their points known are left out. Returns (C, 101) deg.
     """
     kt = _arr(doc["knee_flexion_deg"]["time_s"])
     kd = _arr(doc["knee_flexion_deg"][side])
@@ -84,11 +85,24 @@ def knee_cycles(doc: Mapping[str, Any], side: str, max_missing: float = 0.1) -> 
             continue
         t, k = kt[sel], kd[sel]
         ok = np.isfinite(k)
-        if ok.mean() < 1 - max_missing or ok.sum() < 5:
+        if ok.sum() < 5:
             continue
         g = np.linspace(a, b, 101)
-        out.append(np.interp(g, t[ok], k[ok]))
+        v = np.interp(g, t[ok], k[ok])
+        nearest = np.clip(np.searchsorted(t, g), 0, len(t) - 1)
+        v[~ok[nearest]] = np.nan
+        if np.isfinite(v).mean() >= min_known:
+            out.append(v)
     return np.array(out).reshape(-1, 101)
+
+
+def _cycle_mean(cyc: np.ndarray) -> np.ndarray:
+    """Mean over cycles of each point, NaN where no cycle is known there."""
+    out = np.full(101, np.nan)
+    if len(cyc):
+        known = np.isfinite(cyc).any(axis=0)
+        out[known] = np.nanmean(cyc[:, known], axis=0)
+    return out
 
 
 def toe_off_pct(doc: Mapping[str, Any], side: str) -> list[float]:
@@ -123,9 +137,10 @@ def side_summary(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
         stride, stride_sd, n_stride = _mean_sd(d["stride_length_mm"])
         stance, stance_sd, _ = _mean_sd(d["stance_s"])
         swing, swing_sd, _ = _mean_sd(d["swing_s"])
-        cyc = knee_cycles(doc, s)
-        rom = float(np.mean(cyc.max(axis=1) - cyc.min(axis=1))) if len(cyc) else float("nan")
-        peak = float(np.mean(cyc.max(axis=1))) if len(cyc) else float("nan")
+        # ROM and peak from the cycles known over at least 90 % of their points
+        cyc = knee_cycles(doc, s, min_known=0.9)
+        rom = float(np.mean(np.nanmax(cyc, 1) - np.nanmin(cyc, 1))) if len(cyc) else float("nan")
+        peak = float(np.mean(np.nanmax(cyc, axis=1))) if len(cyc) else float("nan")
         total = stance + swing
         out[s] = {
             "steps": float(sum(1 for c in doc.get("cycles", []) if c["side"] == s)),
@@ -182,18 +197,18 @@ def cycle_figure(doc: Mapping[str, Any], norm: Mapping[str, Any]) -> str:
         for c in cyc:
             ax.plot(x, c, color=COLOURS[s], lw=0.7, alpha=0.35)
         if len(cyc):
-            ax.plot(x, cyc.mean(axis=0), color=COLOURS[s], lw=2.2, label=f"mean of {len(cyc)}")
+            ax.plot(x, _cycle_mean(cyc), color=COLOURS[s], lw=2.2, label=f"mean of {len(cyc)}")
         to = toe_off_pct(doc, s)
         if to:
             ax.axvline(float(np.mean(to)), color=COLOURS[s], lw=1.2, ls="--", label="toe off")
         ax.plot([0, 100], [ax.get_ylim()[0]] * 2, ls="none")
-        ax.set_title(f"{SIDE_NAME[s]} knee ({len(cyc)} cycles)")
+        ax.set_title(f"{SIDE_NAME[s]} knee ({len(cyc)} cycle{'s' if len(cyc) != 1 else ''})")
         ax.set_xlabel("gait cycle, % (heel strike to heel strike)")
         ax.set_xlim(0, 100)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", fontsize=8, frameon=False)
         if not len(cyc):
-            ax.text(50, 30, "no complete cycle", ha="center", color="0.4")
+            ax.text(50, 30, "no cycle with the knee seen", ha="center", color="0.4")
     axes[0].set_ylabel("knee flexion, deg")
     fig.tight_layout()
     out = _svg(fig)

@@ -7,34 +7,41 @@ own Alg. 3 cluster mode (``gaitflow.markers.cluster_mode``).
 
 Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 
-1. every blob is mapped to the floor frame: a along the walking line (toward +u), e
-   horizontal away from the camera, h height above the floor plane (mm);
+1. every blob is mapped to the floor frame under each cluster mode: a along the walking
+   line (toward +u), e horizontal away from the camera, h height above the floor (mm);
 2. the shoulder (SHO) is predicted by a constant-velocity Kalman filter (filterpy,
-   position + velocity in 3D) and taken as the blob in the shoulder height band nearest the
-   prediction; without one the prediction stands in for up to ``max_missed`` frames (steps
-   1-3). The first shoulder is the shoulder-height blob with the most body markers below it;
-3. the walking direction is the sign of the shoulder's velocity along a (hysteresis:
-   ``flip_frames`` consecutive frames against the current direction); the side facing the
-   camera follows from it (walking toward +u shows the right side). On a change of
-   direction every track is reset: the return pass shows the other side (the L/R swap);
-4. upper body (steps 5-6): near PSI, HIP, ASI and far PSI, ASI are assigned jointly
-   (Hungarian, scipy) to the pelvis-band blobs, each against its track prediction or, when
-   untracked, the subject model's layout placed at the shoulder; then the order
-   PSI < HIP < ASI (near) and PSI < ASI (far) along the walking direction is enforced (a
-   label that breaks it is dropped, never swapped);
-5. lower body (steps 7-10): every assignment of the blobs below the hip to the near foot
-   (TIB, ANK, HEE, TOE) is scored exhaustively (vectorised) by the model's rigid distances
-   (TIB-ANK, ANK-HEE, ANK-TOE, HEE-TOE; TIB-HEE and TIB-TOE loosely), the triangle foot
-   model (ANK inside triangle TIB-TOE-HEE in the sagittal plane) and the tracks; the best
-   ones are completed with the far heel and toe (rigid HEE-TOE, deeper than the near foot)
-   and then with the limb (THI, KNE: distances to HIP, TIB, ANK);
-6. a label whose blob breaks its gates (track, rigid distances) is left NaN rather than
-   guessed: an occluded marker gives a gap, not a wrong label. Blobs left over (stray
-   reflectors, far-side leg markers) stay unlabelled.
+   position + velocity in 3D) and taken as the shoulder-height blob nearest the prediction
+   (or a clearly nearer-to-camera one at the same place: the near shoulder); without one
+   the prediction stands in for up to ``max_missed`` frames (steps 1-3); missing frames
+   count as misses and a track back after 3 restarts. The first shoulder is a
+   shoulder-height blob with body markers below it and nearer the camera than they are;
+3. the walking direction is the sign of the shoulder's velocity along a (first sight:
+   toward the far end of the walkway; then ``flip_frames`` frames against it to change).
+   The side facing the camera follows (walking toward +u shows the right side). A change of
+   direction resets every track and re-acquires the near shoulder: the return pass shows
+   the other side (the L/R swap). While turning (slow along the line, or heading off it)
+   only the shoulder is labelled;
+4. upper body (steps 5-6): every assignment of the pelvis-band blobs to near PSI, HIP, ASI
+   and far ASI, PSI (absorbers, never published) is scored (vectorised) by the tracks or
+   the model's standing offsets from the shoulder, sagittal rigid distances, and the hard
+   order PSI < HIP < ASI along the walking direction, HIP below both, far ASI deeper;
+5. lower body (steps 7-10): every assignment of the low blobs to the near foot (TIB, ANK,
+   HEE, TOE) is scored by the model's sagittal segment lengths (TIB-ANK, ANK-HEE, ANK-TOE,
+   HEE-TOE; TIB-HEE and TIB-TOE loosely), the triangle foot model (ANK inside triangle
+   TIB-TOE-HEE) and the tracks, under hard rules (toe half a foot ahead of the heel, tibia
+   above ankle, heel and toe not far above the ankle); the best ones are completed with the
+   far heel and toe (rigid foot, deeper than the near foot; a lone far blob only on last
+   frame's track), then the limb (THI, KNE: distances to HIP, TIB, ANK; far knee and thigh
+   absorb their blobs);
+6. a label is left NaN rather than guessed when another blob fits it almost as well
+   (``ambiguity``) or it breaks a track gate or a rigid distance: an occluded marker gives a
+   gap, not a wrong label. Blobs left over (stray reflectors, far-side leg markers) stay
+   unlabelled.
 
 Far-side SHO, HIP, THI, KNE, TIB and ANK face away from the camera in a side view and are
-never assigned. Conventions: (20, ...) arrays follow ``gaitflow.markers.MARKER_NAMES``;
-camera space X right, Y down, Z forward, mm; pixels (u, v); NaN = missing.
+never published; nor, by default, the near ASI and PSI (``publish_asis_psis``).
+Conventions: (20, ...) arrays follow ``gaitflow.markers.MARKER_NAMES``; camera space X
+right, Y down, Z forward, mm; pixels (u, v); NaN = missing.
 """
 
 from __future__ import annotations
@@ -540,9 +547,9 @@ def _acquire_shoulder(floor: np.ndarray, ok: np.ndarray, band: np.ndarray, H: fl
         near = body & (np.abs(floor[:, 0] - floor[i, 0]) < 0.3 * H)
         near &= np.abs(floor[:, 1] - floor[i, 1]) < 0.35 * H
         n = int(near.sum())
-        # The near shoulder stands out toward the camera from the hips and thighs; a far
-        # shoulder (seen first as the subject turns into view) lies behind them.
-        if n >= 2 and floor[i, 1] < np.median(floor[near, 1]):
+        # The near shoulder stands out toward the camera from the hips and thighs (all of
+        # them); a far shoulder (seen first as the subject turns into view) lies behind.
+        if n >= 3 and floor[i, 1] < np.min(floor[near, 1]) + 0.05 * H:
             cands.append((n, -floor[i, 1], int(i)))
     if not cands:
         return -1
@@ -772,7 +779,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     if K2 == 0:
         return
     cap = 7 if hip is not None else 6  # the search grows as (K + 1) ** slots
-    if K2 > cap:
+    if cap < K2:
         lc = lc[np.argsort(np.abs(q[lc, 2] - geo.rel_sho("near", "KNE")[2]))[:cap]]
         K2 = cap
     # The far knee and thigh take part only to absorb their blobs when seen (never

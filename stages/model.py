@@ -1,8 +1,10 @@
 """Stage ``model``: the person-centric subject model from the static recording (Sec. IV-B).
 
-The subject stands still, side-on, on the walking line. Every frame of the static trial is
-labelled by layout (height above the floor plane, order along the walking axis, near/far by
-depth), and at the end of the trial the per-marker median over the frames gives the model:
+The subject stands still, side-on, on the walking line. At the end of the static trial the
+frame showing the most body blobs is taken as the key frame, each of its blobs smoothed by
+the median of its matches (within 25 mm) over the trial, transients dropped, and that pose
+is labelled by layout rules (height above the floor plane, order along the walking axis,
+near/far by depth; :func:`label_pose`). The model:
 
 - ``reference``: the standing pose, camera mm (20, 3), NaN = not seen;
 - ``distances``: the inter-marker distances (20, 20), mm;

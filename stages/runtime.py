@@ -43,7 +43,7 @@ import os
 import signal
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from types import FrameType
@@ -286,6 +286,8 @@ class Reorderer:
     def __init__(self, window: int, timeout_s: float, step: int = 1, start: int = 0) -> None:
         self.window, self.timeout_s, self.step, self.start = window, timeout_s, step, start
         self._seqs: dict[tuple[str, str, str], _Seq] = {}
+        # Recently closed sequences: key -> (last frame, when), to drop stragglers.
+        self._closed: OrderedDict[tuple[str, str, str], tuple[int, float]] = OrderedDict()
         self._tie = itertools.count()
         self.late = 0
         self.gaps = 0
@@ -297,6 +299,16 @@ class Reorderer:
         h = msg.header
         key = (stream, h.camera, h.trial)
         seq = self._seqs.get(key)
+        closed = self._closed.pop(key, None) if seq is None else None
+        if closed is not None:
+            last, at = closed
+            near_end = last - self.window * self.step < h.frame <= last
+            if near_end and now - at < max(self.timeout_s, 1.0):
+                # A straggler of a trial already closed by its last frame. (A far jump
+                # back is a new pass of the same trial: a replay loop.)
+                self._closed[key] = closed
+                self.late += 1
+                return []
         if seq is None:
             seq = self._seqs[key] = _Seq(self.start)
         elif h.frame < seq.expected - 2 * self.window * self.step and not seq.heap:
@@ -344,9 +356,13 @@ class Reorderer:
             out.append((stream, msg))
             if msg.header.last:
                 # The trial is closed: forget it so memory stays bounded and a replayed
-                # trial of the same name starts afresh. Stragglers are late.
+                # trial of the same name starts afresh. Stragglers (near the end, soon after)
+                # are late.
                 self.late += len(seq.heap)
                 del self._seqs[key]
+                self._closed[key] = (frame, now)
+                while len(self._closed) > 1024:
+                    self._closed.popitem(last=False)
                 return
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from gaitflow.bus import FakeBus
 from gaitflow.bus.fake import intersects
 

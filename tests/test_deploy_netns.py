@@ -106,8 +106,9 @@ from gaitflow.edgebuffer import Ring, Uplink
 from gaitflow.schemas import RawFrame
 d, ring_dir, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
 iss = Issued("edge-1", d + "/edge-1/cert.pem", d + "/edge-1/key.pem", d + "/edge-1/ca.pem")
+from gaitflow.deployment import RECONNECT
 cfg = BusConfig(site="clinic", connect=("tls/@IP@:@PORT@",), tls=tls_section(iss),
-                extra=(("transport/link/tx/lease", 2000),))
+                extra=(("transport/link/tx/lease", 2000), ("connect/retry", RECONNECT)))
 local = FakeBus()
 ring = Ring(ring_dir, segment_messages=32)
 up = Uplink(local, lambda: Bus(cfg), "clinic", "cam-1", ["raw"], ring,

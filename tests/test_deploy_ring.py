@@ -192,3 +192,60 @@ def test_slow_server_never_blocks_the_edge(tmp_path: Path) -> None:
     finally:
         up.stop()
         token.undeclare()
+
+
+def test_ring_survives_a_restart_and_a_crash(tmp_path: Path) -> None:
+    payloads = [frame(i) for i in range(14)]
+    ring = Ring(tmp_path, segment_messages=4)
+    for p in payloads[:10]:
+        ring.append(KEY, p)
+    ring.close()  # a clean stop: two closed segments and a finished open one
+    again = Ring(tmp_path, segment_messages=4)
+    assert (again.first_seq, again.next_seq) == (0, 10)
+    for p in payloads[10:13]:
+        again.append(KEY, p)
+    # A crash: the writer is never closed; the open segment has no footer.
+    crashed = Ring(tmp_path, segment_messages=4)
+    assert crashed.next_seq == 13
+    assert [p for _, _, p in crashed.read_from(0)] == payloads[:13]
+    assert crashed.append(KEY, payloads[13]) == 13
+    crashed.close()
+    again.close()
+
+
+def test_uplink_restart_forwards_the_backlog_of_the_previous_run(tmp_path: Path) -> None:
+    server = FakeBus()
+    received: list[int] = []
+    d = Deduper()
+    server.subscribe(
+        f"gaitflow/{SITE}/*/raw",
+        dedupe(lambda k, p: received.append(decode(RawFrame, p).header.frame), d),
+    )
+    token = server.liveliness_token(router_token_key(SITE))
+    local = FakeBus()
+
+    def uplink() -> Uplink:
+        ring = Ring(tmp_path, segment_messages=4)
+        return Uplink(
+            local, lambda: FlakyLink(server), SITE, "cam-1", ["raw"], ring, router_token_key(SITE)
+        ).start()
+
+    first = uplink()
+    assert _wait(lambda: first.link_up)
+    for i in range(10):
+        local.put(KEY, frame(i))
+    assert _wait(lambda: len(received) == 10)
+    token.undeclare()  # the link goes down; the edge keeps recording
+    assert _wait(lambda: not first.link_up)
+    for i in range(10, 25):
+        local.put(KEY, frame(i))
+    first.stop()  # ... and then the uplink process is restarted
+    token = server.liveliness_token(router_token_key(SITE))
+    second = uplink()
+    try:
+        assert _wait(lambda: len(received) == 25)
+        assert received == list(range(25))
+        assert second.stats.received == 0  # all of it came from the first run's ring
+    finally:
+        second.stop()
+        token.undeclare()

@@ -247,3 +247,35 @@ def test_split_passes_forth_and_back():
     assert [p.direction for p in passes] == [1, -1]
     assert t[passes[0].stop - 1] < 3.9 and t[passes[1].start] > 4.1
     assert gc.split_passes(t, np.full_like(t, NAN)) == []
+
+
+# --- robustness helpers ------------------------------------------------------------------------
+
+
+def test_reject_outliers_drops_a_wrong_label_but_keeps_smooth_motion():
+    t = np.arange(20) / 30.0
+    pos = np.zeros((20, 1, 3))
+    pos[:, 0, 0] = 2000.0 * t  # 2 m/s, smooth
+    pos[7, 0, 1] = 60.0  # one frame labelled on another marker 60 mm away
+    out = gc.reject_outliers(pos, max_dev_mm=25.0)
+    assert np.isnan(out[7]).all()
+    assert np.isfinite(np.delete(out, 7, axis=0)).all()
+    np.testing.assert_array_equal(gc.reject_outliers(pos, 0.0), pos)
+
+
+def test_segment_outliers_flags_a_changed_length():
+    a = np.zeros((10, 3))
+    b = np.tile([0.0, 400.0, 0.0], (10, 1))
+    b[4] = [0.0, 300.0, 0.0]  # the thigh shrinks by 25 %
+    assert gc.segment_outliers(a, b, 0.15).tolist() == [i == 4 for i in range(10)]
+
+
+def test_local_linear_keeps_a_line_and_smooths_noise():
+    t = np.arange(60) / 30.0
+    line = 2500.0 + 100.0 * t
+    np.testing.assert_allclose(gc.local_linear(t, line, 0.3), line)
+    noisy = line + np.random.default_rng(1).normal(0, 10.0, t.shape)
+    assert np.std(gc.local_linear(t, noisy, 0.3) - line) < 0.6 * np.std(noisy - line)
+    x = line.copy()
+    x[5] = np.nan
+    assert np.isnan(gc.local_linear(t, x, 0.3)[5])

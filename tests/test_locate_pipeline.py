@@ -9,6 +9,7 @@ from gaitflow.stages.graph import load
 from gaitflow.stages.inline import run_inline
 
 from gaitflow.bench import mocap
+from gaitflow.camera import Camera
 
 H, W = 212, 256
 MARKERS = [(60.3, 50.6), (120.7, 90.2), (180.4, 150.8)]
@@ -112,7 +113,8 @@ def test_bench_stages_on_a_few_simulated_frames() -> None:
     score = mocap.Score()
     for method in ("adaptive", "static"):
         score = mocap.Score()
-        rendered = [(r, t, m) for (r, t), m in zip(frames, mids, strict=True)]
+        cal = mocap.session_record(Camera().to_json(marker_diameter_mm=25))
+        rendered = [(r, t, m, cal) for (r, t), m in zip(frames, mids, strict=True)]
         mocap.run_stages(rendered, method, score, gate=4.0)
         r = mocap.summarise(score)
         assert r["frames"] == 6 and r["visible"] > 30

@@ -9,10 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-
 from gaitflow.bus import FakeBus
-from gaitflow.errors import ParameterError, StageError
-from gaitflow.params import ParamSet
 from gaitflow.schemas import RawFrame, decode
 from gaitflow.stages import relay
 from gaitflow.stages.base import SourceSpec, StageSpec
@@ -25,6 +22,9 @@ from gaitflow.stages.runtime import (
     StageRuntime,
     make_runtime,
 )
+
+from gaitflow.errors import ParameterError, StageError
+from gaitflow.params import ParamSet
 
 IN = "gaitflow/clinic/cam0/raw"
 OUT = "gaitflow/clinic/cam0/raw-1"
@@ -119,7 +119,13 @@ def test_reorderer_window_last_and_restart() -> None:
     assert r.gaps == 1
     out = r.push("raw", frame(5, last=True), 0.0)
     assert [m.header.frame for _, m in out] == [5]
-    # the trial was closed: a replay of the same trial starts afresh at 0
+    # the trial was closed: a straggler of its end is late, not a new sequence
+    assert r.push("raw", frame(4), 0.1) == [] and r.late == 1
+    # a replay of the same trial (a jump far back) starts afresh at 0
+    r2 = Reorderer(window=3, timeout_s=10.0)
+    for i in range(10):
+        r2.push("raw", frame(i, last=i == 9), 0.0)
+    assert [m.header.frame for _, m in r2.push("raw", frame(0), 0.0)] == [0]
     assert [m.header.frame for _, m in r.push("raw", frame(0), 0.0)] == [0]
     # trials and cameras are separate sequences
     assert [m.header.frame for _, m in r.push("raw", frame(0, trial="walk-02"), 0.0)] == [0]

@@ -175,7 +175,10 @@ def summarise(s: Score) -> dict[str, Any]:
 
 
 def render_frames(trial: str, seed: int, variant: str, frames: int, recording: str) -> list:
-    """Render the first ``frames`` frames of a recording (all if ``frames`` <= 0)."""
+    """Render the first ``frames`` frames of a recording (all if ``frames`` <= 0).
+
+    Returns (raw, truth, mid-exposure truth pixels, session calibration record) per frame.
+    """
     from gaitflow.sim import SimConfig, simulate_session
 
     cfg = SimConfig.quick(**VARIANTS[variant])
@@ -187,9 +190,32 @@ def render_frames(trial: str, seed: int, variant: str, frames: int, recording: s
     k = min(frames, n) if frames > 0 else n
     start = 0
     out = [rec.frame(i, last=i == start + k - 1) for i in range(start, start + k)]
+    cal = session_record(ses.camera_json)
     lag = truth_lag_frames(cfg)
     mids = mid_exposure_pixels(out, lag)
-    return [(raw, truth, mid) for (raw, truth), mid in zip(out, mids, strict=True)]
+    return [(raw, truth, mid, cal) for (raw, truth), mid in zip(out, mids, strict=True)]
+
+
+def session_record(camera_json: dict[str, Any]) -> Any:
+    """A calibration record carrying only the session's camera.json, as the pipeline has it.
+
+    The bench does not run the calibrate stage (that is ``gaitflow bench`` of the gait
+    application), so w and r_b are absent (NaN) and the stages use their documented
+    fallbacks; the camera document gives locate the intrinsics and the marker diameter,
+    which a real session folder's camera.json also carries. Nothing here is ground truth.
+    """
+    from gaitflow.schemas import CalibrationRecord
+
+    return CalibrationRecord(
+        header=CalibrationRecord.make_header("cam0", "calibration", 0, 0, last=True),
+        floor_pixels=np.zeros((0, 2)),
+        floor_points=np.zeros((0, 3)),
+        floor_plane=np.full(4, np.nan),
+        start=np.full(3, np.nan),
+        end=np.full(3, np.nan),
+        status="Done",
+        camera=dict(camera_json),
+    )
 
 
 def truth_lag_frames(cfg: Any) -> float:
@@ -227,12 +253,14 @@ def run_stages(frames: list, method: str, score: Score, gate: float, refine: boo
     }
     state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
     clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
-    for raw, truth, mid in frames:
+    for raw, truth, mid, cal in frames:
         w0 = time.perf_counter()
         t0 = clock()
-        state["clean"], (cf,) = clean.SPEC.step(state["clean"], {"raw": raw})
+        state["clean"], (cf,) = clean.SPEC.step(state["clean"], {"raw": raw, "calibration": cal})
         t1 = clock()
-        state["detect"], (bl,) = detect.SPEC.step(state["detect"], {"clean": cf})
+        state["detect"], (bl,) = detect.SPEC.step(
+            state["detect"], {"clean": cf, "calibration": cal}
+        )
         t2 = clock()
         state["locate"], (mk,) = locate.SPEC.step(state["locate"], {"clean": cf, "blobs": bl})
         t3 = clock()

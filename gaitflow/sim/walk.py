@@ -152,7 +152,7 @@ class WalkMotion:
         ``margin_mm`` outside them.
     """
 
-    BLEND_S = 0.15  # cross-fade between the source and its repeated cycles
+    BLEND_S = 0.25  # cross-fade between the source and its repeated cycles
 
     def __init__(
         self,
@@ -173,6 +173,13 @@ class WalkMotion:
         # Centre the source pass on the optical axis's crossing of the walking line.
         x_view = D * np.tan(np.radians(cfg.pan_deg))
         self.cycles = _cycles(trial, body)
+        self._resid: list[tuple[np.ndarray, ...]] = []
+        for cyc in self.cycles or ():
+            start = self.body.at(np.array([cyc.start]))
+            end = self.body.at(np.array([cyc.start + cyc.period]))
+            self._resid.append(
+                tuple(e[0] - s0[0] - cyc.shift for e, s0 in zip(end, start, strict=True))
+            )
         half = 0.5 * (pelvis[-1, 0] - pelvis[0, 0])
         pre = post = 0.0
         if view_x is not None and self.cycles is not None:
@@ -208,17 +215,20 @@ class WalkMotion:
         c0, c1 = self.cycles
         w_pre = np.clip(1.0 - tau / blend, 0.0, 1.0)
         w_post = np.clip((tau - (self.src_dur - blend)) / blend, 0.0, 1.0)
-        for cyc, w in ((c0, w_pre), (c1, w_post)):
+        for cyc, w, resid in ((c0, w_pre, self._resid[0]), (c1, w_post, self._resid[1])):
             if not (w > 0).any():
                 continue
             n = np.floor((tau - cyc.start) / cyc.period)
-            src = cyc.start + (tau - cyc.start) - n * cyc.period
-            mc, ac, bc = self.body.at(src)
+            phase = (tau - cyc.start) - n * cyc.period
+            mc, ac, bc = self.body.at(cyc.start + phase)
+            # Remove the cycle's non-periodic residual linearly over the cycle, so that
+            # consecutive copies join without a jump.
+            f = (phase / cyc.period)[:, None, None]
             sh = (n[:, None] * cyc.shift)[:, None, :]
             ww = w[:, None, None]
-            m = (1 - ww) * m + ww * (mc + sh)
-            a = (1 - ww) * a + ww * (ac + sh)
-            b = (1 - ww) * b + ww * (bc + sh)
+            m = (1 - ww) * m + ww * (mc - f * resid[0] + sh)
+            a = (1 - ww) * a + ww * (ac - f * resid[1] + sh)
+            b = (1 - ww) * b + ww * (bc - f * resid[2] + sh)
         return m, a, b
 
     def _posed(self, p: Pass, tau: np.ndarray):
