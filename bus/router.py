@@ -6,6 +6,7 @@ A router is a Zenoh session opened in mode ``router`` that listens on its endpoi
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import threading
@@ -99,8 +100,11 @@ def serve(cfg: BusConfig, listen: tuple[str, ...], ready: threading.Event | None
             print(f"gaitflow router: listening on {', '.join(listen)}", flush=True)
             if ready is not None:
                 ready.set()
-            while not stop.wait(0.5):
-                pass
+            # Started by a launcher: exit with it, even if it was SIGKILLed.
+            parent = int(os.environ.get("GAITFLOW_PARENT_PID", "0") or 0)
+            while not stop.wait(0.2):
+                if parent and os.getppid() != parent:
+                    break
     finally:
         for s, h in old.items():
             signal.signal(s, h)

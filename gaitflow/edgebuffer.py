@@ -426,8 +426,16 @@ class Uplink:
         now = time.monotonic()
         if force or now - self._saved_at >= CURSOR_SAVE_S:
             self._saved_at = now
+            with self._lock:
+                # What was sent within the resend margin may still die with this process
+                # (socket buffers): a restart resends it, as a link drop would.
+                safe = self._cursor if self._rewind_to is None else self._rewind_to
+                while self._sent_times and now - self._sent_times[0][0] > self.resend_margin_s:
+                    self._sent_times.popleft()
+                if self._sent_times:
+                    safe = min(safe, self._sent_times[0][1])
             try:
-                self.ring.save_cursor(self._cursor)
+                self.ring.save_cursor(safe)
             except OSError as exc:
                 # A full disk must not stop forwarding; the cursor is an optimisation.
                 self.stats.cursor_save_errors += 1
@@ -451,12 +459,15 @@ class Uplink:
             # and the liveliness callback that marks the link down must not wait for it.
             try:
                 self._remote.put(key, payload)
-            except Exception as exc:  # noqa: BLE001 - any transport failure = link down
+            except Exception as exc:  # noqa: BLE001 - any transport failure: count, retry
                 with self._lock:
                     self.stats.send_errors += 1
-                    self._up.clear()
-                    self._rewind_to = seq
-                log.warning("uplink %s: send failed: %s", self.camera, exc)
+                    if self._rewind_to is None:
+                        self._rewind_to = seq
+                log.warning("uplink %s: send failed (will retry): %s", self.camera, exc)
+                # The link state stays with liveliness; pause so a broken session does
+                # not spin, then resend from this frame.
+                self._stop.wait(0.2)
                 return
             with self._lock:
                 self.stats.sent += 1

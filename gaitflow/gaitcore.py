@@ -747,7 +747,10 @@ def spatiotemporal(
     Definitions of ``../shared/spec/results.md``:
 
     - step length (assigned to the leading foot at its heel strike): distance along the
-      walking direction between the two heels at that heel strike;
+      walking direction between the two heels at that heel strike, each heel taken where it
+      struck the floor (the trailing heel at its own, previous strike: by now it is rolling
+      forward). This is the clinical footprint definition and the paper's Fig. 6 (the gap
+      between the stable positions of the left and right heels);
     - stride length: between the positions of the same heel at successive heel strikes;
     - stance: heel strike to toe off of the same foot; swing: toe off to the next heel strike;
     - cadence: steps per minute from all heel strikes of both feet; speed: total stride length
@@ -797,7 +800,13 @@ def spatiotemporal(
             ]
             if prior:
                 here = pos(side, c.heel_strike, c.heel_pos)
-                there = pos(other, c.heel_strike, prior[-1].heel_pos)
+                o = prior[-1]
+                # the trailing heel where it struck (its footprint), not where it has rolled to
+                there = (
+                    pos(other, o.heel_strike, o.heel_pos)
+                    if _finite(o.heel_strike)
+                    else (o.heel_pos)
+                )
                 d = direction * (here - there)
                 if _finite(d) and d > 0:
                     step.append(round(float(d), 2))

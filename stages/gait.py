@@ -38,6 +38,7 @@ from gaitflow.schemas import GaitFrame, Header, LabelledMarkers, Message, TrialS
 from gaitflow.stages.base import Inputs, StageSpec
 
 from gaitflow import gaitcore as gc
+from gaitflow.errors import StageError
 from gaitflow.markers import MARKER_INDEX
 from gaitflow.params import Param, ParamSet
 from gaitflow.results import build_results, empty_results
@@ -109,6 +110,15 @@ PARAMS = ParamSet(
         Param("min_speed_mm_s", float, 150.0, "mm/s", "slower than this is not walking", 1.0),
         Param("live_every", int, 15, "frames", "live event search period (0 = at the end)", 0),
         Param("live_delay_s", float, 0.5, "s", "live events older than this are confirmed", 0.0),
+        Param("live_window_s", float, 20.0, "s", "live event search looks this far back", 2.0),
+        Param(
+            "max_frames",
+            int,
+            54000,
+            "frames",
+            "a trial this long is closed and a new one begun (30 min at 30 fps)",
+            100,
+        ),
         Param("session", str, "", "", "session name written into the results"),
     ),
 )
@@ -138,7 +148,7 @@ class GaitState:
     start: np.ndarray | None = None
     end: np.ndarray | None = None
     emitted: tuple[tuple[str, str, float], ...] = ()
-    passes_done: int = 0
+    summarised_until: float = float("-inf")  # end of the last pass given its own summary
 
 
 @dataclass(frozen=True)
@@ -443,6 +453,11 @@ def _gait_frame(state: GaitState, rec: FrameRec, events: list) -> GaitFrame:
     )
 
 
+def _reset(state: GaitState) -> GaitState:
+    """The state with no open trial (the parameters and calibration stay)."""
+    return dataclasses.replace(state, frames=(), emitted=(), summarised_until=float("-inf"))
+
+
 def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
     """End the open trial: the summaries, and the events not yet published."""
     if not state.frames:
@@ -453,15 +468,24 @@ def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
     if state.plane is None:
         doc = empty_results(state.params.get("session", ""), trial, 30.0, "no floor calibration")
         out.append(TrialSummary.follow(last, results=doc, warnings=doc["warnings"]))
-        return dataclasses.replace(state, frames=(), emitted=(), passes_done=0), out, []
+        return (
+            dataclasses.replace(state, frames=(), emitted=(), summarised_until=float("-inf")),
+            out,
+            [],
+        )
     a = analyse(state.frames, state.plane, state.start, state.end, state.params)
     doc = _document(state.frames, a, state.params)
     new_events = _new_events(state, a.events, float("inf"))
-    for i in range(state.passes_done, len(a.passes)):
-        pdoc = _document(state.frames, a, state.params, i)
-        out.append(TrialSummary.follow(last, results=pdoc, warnings=pdoc["warnings"]))
+    for i, ps in enumerate(a.passes):
+        if ps["end_s"] > state.summarised_until:
+            pdoc = _document(state.frames, a, state.params, i)
+            out.append(TrialSummary.follow(last, results=pdoc, warnings=pdoc["warnings"]))
     out.append(TrialSummary.follow(last, results=doc, warnings=list(a.warnings)))
-    return dataclasses.replace(state, frames=(), emitted=(), passes_done=0), out, new_events
+    return (
+        dataclasses.replace(state, frames=(), emitted=(), summarised_until=float("-inf")),
+        out,
+        new_events,
+    )
 
 
 def _new_events(state: GaitState, events: list[dict[str, Any]], before: float) -> list[list]:
@@ -482,12 +506,15 @@ def _new_events(state: GaitState, events: list[dict[str, Any]], before: float) -
 def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
     """Take one labelled frame; publish its ``gait`` message (and summaries at ends)."""
     msg = inputs["labelled"]
-    assert isinstance(msg, LabelledMarkers)
+    if not isinstance(msg, LabelledMarkers):
+        raise StageError("gait", f"input 'labelled' is a {type(msg).__name__}")
     out: list[Message] = []
     h = msg.header
     if state.frames:
         open_h = state.frames[0].header
-        if (open_h.camera, open_h.trial) != (h.camera, h.trial):
+        too_long = len(state.frames) >= state.params["max_frames"]
+        if (open_h.camera, open_h.trial) != (h.camera, h.trial) or too_long:
+            # a new trial, or a live trial too long to keep: close what is open
             state, closed, _ = _close(state)
             out.extend(closed)
     cal = inputs.get("calibration")
@@ -512,19 +539,21 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
     every = state.params["live_every"]
     n = len(state.frames)
     if every > 0 and n % every == 0 and state.plane is not None and not h.last:
-        a = analyse(state.frames, state.plane, state.start, state.end, state.params, live=True)
+        # live events from the recent frames only (times stay on the trial's clock), so the
+        # cost per frame does not grow with the trial
+        recent = state.frames[-int(state.params["live_window_s"] * 30) :]
+        a = analyse(recent, state.plane, state.start, state.end, state.params, live=True)
         now = float(a.t[-1])
         events = _new_events(state, a.events, now - state.params["live_delay_s"])
         state = dataclasses.replace(state, emitted=state.emitted + tuple(map(tuple, events)))
-        # a pass that ended well before now is complete: summarise it
-        done = [i for i, ps in enumerate(a.passes) if ps["end_s"] < now - 1.0]
-        if done and done[-1] >= state.passes_done:
+        # a pass that ended well before now is complete: summarise it (once)
+        if any(state.summarised_until < ps["end_s"] < now - 1.0 for ps in a.passes):
             full = analyse(state.frames, state.plane, state.start, state.end, state.params)
-            for i in range(state.passes_done, min(done[-1] + 1, len(full.passes))):
-                if full.passes[i]["end_s"] < now - 1.0:
+            for i, ps in enumerate(full.passes):
+                if state.summarised_until < ps["end_s"] < now - 1.0:
                     pdoc = _document(state.frames, full, state.params, i)
                     out.append(TrialSummary.follow(h, results=pdoc, warnings=pdoc["warnings"]))
-                    state = dataclasses.replace(state, passes_done=i + 1)
+                    state = dataclasses.replace(state, summarised_until=ps["end_s"])
     if h.last:
         closing_state, closed, final_events = _close(state)
         out.insert(0, _gait_frame(state, rec, events + final_events))

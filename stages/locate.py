@@ -385,10 +385,15 @@ def _batch(
     valid = valid.reshape(n, S2)
     zf = np.where(valid, vals.reshape(n, S2), np.inf)
     dist = np.hypot(cols - cen[:, 0, None, None], rows - cen[:, 1, None, None]).reshape(n, S2)
-    upper = (rows <= cen[:, 1, None, None]).reshape(n, S2) & valid
     nvalid = valid.sum(axis=1)
-    use_upper = (upper.sum(axis=1) >= 3) & bool(p["top_half"])
-    zt = np.where(use_upper[:, None] & ~upper, np.inf, zf)
+    if p["top_half"]:
+        upper = (rows <= cen[:, 1, None, None]).reshape(n, S2) & valid
+        use_upper = upper.sum(axis=1) >= 3
+        zt = np.where(use_upper[:, None] & ~upper, np.inf, zf)
+        nt = np.where(use_upper, upper.sum(axis=1), nvalid)
+    else:
+        use_upper = np.zeros(n, dtype=bool)
+        nt = nvalid
     # Both pixel sets sorted per row; dist follows the depth order.
     oa = np.argsort(zf, axis=1, kind="stable")
     za, da = np.take_along_axis(zf, oa, 1), np.take_along_axis(dist, oa, 1)
@@ -398,7 +403,6 @@ def _batch(
     else:
         zt, dt = za, da
     na = nvalid
-    nt = np.where(use_upper, upper.sum(axis=1), nvalid)
     W, ms, reach = p["W"], p["min_slab"], p["bottom_reach"]
     t0_normal, t1_bottom = _layer_bounds(za, na, W, ms, reach)
     if p["top_half"]:

@@ -289,7 +289,8 @@ def label_pose(
     H = float(h[sho])
     out[MARKER_INDEX[f"{near}_SHO"]] = ok[sho]
     frac = {s: layout[SITES.index(s), 1] / H0 for s in SITES}
-    lo_pel = 0.5 * (frac["HIP"] + frac["THI"]) * H
+    # Closer to the thigh than to the hip: a crouching subject's hip sits low.
+    lo_pel = (0.3 * frac["HIP"] + 0.7 * frac["THI"]) * H
     hi_pel = 0.5 * (1.0 + max(frac["ASI"], frac["PSI"])) * H
     lo_leg = 0.5 * (frac["TIB"] + frac["KNE"]) * H
     # Ankle, heel and toe sit below ~7% of shoulder height, a tibia marker above ~10%.

@@ -536,7 +536,12 @@ def run(args: argparse.Namespace) -> int:
     )
     emit(
         args,
-        {"level": args.level, "seed": args.seed, "summary": summary, "trials": _jsonable(per)},
+        {
+            "level": args.level,
+            "seed": args.seed,
+            "summary": _jsonable(summary),
+            "trials": _jsonable(per),
+        },
         [t1, t2],
     )
     return 0

@@ -5,6 +5,7 @@ Every stage runs as its own process (``gaitflow run``'s :class:`Launcher`, a rou
 one simulated session (calibration, static and walking trials, rendered once with
 ``--seed``) for each of N cameras, each with its own camera id, paced at 30 fps per camera,
 with every header re-stamped (camera id, ``capture_ns`` = the moment it is published).
+Camera i starts 7 i frames after camera 0, so the cameras are not in lock-step.
 
 Two scopes (``--scope``):
 
@@ -50,6 +51,7 @@ BUDGET_S = 0.033
 FPS = 30.0
 EDGE_STAGES = ("calibrate", "clean", "detect", "locate")
 SERVER_STAGES = ("model", "label", "gait")
+STAGGER_FRAMES = 7
 
 
 def _session(seed: int) -> list[list[Message]]:
@@ -153,19 +155,29 @@ class _Sink:
 
 
 def _feed(bus: Bus, site: str, seq: list[list[Message]], cameras: list[str]) -> float:
-    """Publish ``seq`` for every camera at 30 fps per camera; return the lag p99 (s)."""
+    """Publish ``seq`` for every camera at 30 fps per camera; return the lag p99 (s).
+
+    Camera i starts ``STAGGER_FRAMES * i`` frames after camera 0: every camera replays the
+    same session, and without the offset each stage's heaviest frames (a trial's last
+    frame, label's re-initialisations) would hit all cameras in the same frame period,
+    which real patients walking in different rooms do not do.
+    """
     pubs: dict[str, Any] = {}
     lags = []
     t0 = time.monotonic()
-    for i, batch in enumerate(seq):
-        due = t0 + i / FPS
+    ticks = len(seq) + STAGGER_FRAMES * (len(cameras) - 1)
+    for t in range(ticks):
+        due = t0 + t / FPS
         wait = due - time.monotonic()
         if wait > 0:
             time.sleep(wait)
         lags.append(time.monotonic() - due)
-        for cam in cameras:
+        for c, cam in enumerate(cameras):
+            i = t - STAGGER_FRAMES * c
+            if not 0 <= i < len(seq):
+                continue
             now = time.time_ns()
-            for m in batch:
+            for m in seq[i]:
                 key = stream_key(site, cam, m.STREAM)
                 pub = pubs.get(key)
                 if pub is None:

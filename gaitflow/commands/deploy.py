@@ -81,6 +81,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "deploy",
         help="role configs (edge, server, all-in-one) and their router/uplink/watch processes",
         description=__doc__,
+        epilog="Examples:\n  gaitflow deploy render --check\n"
+        "  gaitflow deploy router deploy/roles/server.yaml\n"
+        "  gaitflow deploy uplink deploy/roles/edge-1.yaml\n"
+        "  gaitflow deploy watch deploy/roles/edge-1.yaml",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     dsub = p.add_subparsers(dest="deploy", metavar="ACTION", required=True)
@@ -107,7 +111,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         ("uplink", _uplink, "run an edge's uplink (forwarding + MCAP ring)"),
         ("watch", _watch, "export gaitflow_stage_up from liveliness on 127.0.0.1"),
     ):
-        q = dsub.add_parser(name, help=helptext)
+        q = dsub.add_parser(
+            name,
+            help=helptext,
+            description=helptext,
+            epilog=f"Example: gaitflow deploy {name} deploy/roles/"
+            + ("server.yaml" if name == "router" else "edge-1.yaml"),
+        )
         q.add_argument("role", help="role config YAML (deploy/roles/*.yaml)")
         if name == "watch":
             q.add_argument("--port", type=int, help="metrics port (default: the role's)")
