@@ -96,7 +96,7 @@ PARAMS = ParamSet(
         Param(
             "ambiguity",
             float,
-            2.0,
+            4.0,
             "sigma^2",
             "a label is dropped when another blob scores within this margin of the best",
             0.0,

@@ -368,18 +368,25 @@ def _batch(
     n = cen.shape[0]
     half = np.ceil(r + margin).astype(np.intp)
     hm = int(half.max())
-    off = np.arange(-hm, hm + 1)
     cu = np.rint(cen[:, 0]).astype(np.intp)
     cq = np.rint(cen[:, 1]).astype(np.intp)
-    # (n, S, S) window pixel coordinates, masked to each blob's own half-size.
+    # (n, S, S) windows gathered through a strided view of the image (no index arrays);
+    # a window is shifted inward at the image border and masked to the blob's own box.
     S = 2 * hm + 1
-    cols = np.broadcast_to(cu[:, None, None] + off[None, None, :], (n, S, S))
-    rows = np.broadcast_to(cq[:, None, None] + off[None, :, None], (n, S, S))
-    inside = (np.abs(off)[None, None, :] <= half[:, None, None]) & (
-        np.abs(off)[None, :, None] <= half[:, None, None]
+    if H < S or Wd < S:  # image smaller than a window: pad once, never in practice
+        depth = np.pad(depth, ((0, max(S - H, 0)), (0, max(S - Wd, 0))))
+    Hp, Wp = depth.shape
+    r0 = np.clip(cq - hm, 0, Hp - S)
+    c0 = np.clip(cu - hm, 0, Wp - S)
+    view = np.lib.stride_tricks.sliding_window_view(depth, (S, S))
+    vals = view[r0, c0]  # (n, S, S)
+    ar = np.arange(S)
+    rows = r0[:, None, None] + ar[None, :, None]  # (n, S, 1)
+    cols = c0[:, None, None] + ar[None, None, :]  # (n, 1, S)
+    inside = (np.abs(rows - cq[:, None, None]) <= half[:, None, None]) & (
+        np.abs(cols - cu[:, None, None]) <= half[:, None, None]
     )
-    inside &= (cols >= 0) & (cols < Wd) & (rows >= 0) & (rows < H)
-    vals = depth[np.clip(rows, 0, H - 1), np.clip(cols, 0, Wd - 1)].astype(np.float64)
+    inside &= (rows < H) & (cols < Wd)
     valid = inside & (vals > 0) & (vals <= p["max_depth"])
     S2 = S * S
     valid = valid.reshape(n, S2)
@@ -387,7 +394,8 @@ def _batch(
     dist = np.hypot(cols - cen[:, 0, None, None], rows - cen[:, 1, None, None]).reshape(n, S2)
     nvalid = valid.sum(axis=1)
     if p["top_half"]:
-        upper = (rows <= cen[:, 1, None, None]).reshape(n, S2) & valid
+        above = np.broadcast_to(rows <= cen[:, 1, None, None], (n, S, S))
+        upper = above.reshape(n, S2) & valid
         use_upper = upper.sum(axis=1) >= 3
         zt = np.where(use_upper[:, None] & ~upper, np.inf, zf)
         nt = np.where(use_upper, upper.sum(axis=1), nvalid)

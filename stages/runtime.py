@@ -218,7 +218,9 @@ class BoundedQueue:
     """A FIFO of at most ``maxsize`` items with an explicit overflow policy.
 
     ``put`` returns how many items were dropped to make room (0 or 1). ``force=True``
-    bypasses the bound (used for the shutdown marker).
+    bypasses the bound (used for the shutdown marker). ``unfinished`` counts the items put
+    and neither dropped nor marked done (:meth:`task_done`): an item the consumer has taken
+    but not yet processed still counts, so "nothing unfinished" means nothing is in flight.
     """
 
     def __init__(self, maxsize: int, policy: str, block_timeout_s: float) -> None:
@@ -228,6 +230,7 @@ class BoundedQueue:
         self._items: deque[Any] = deque()
         self._cond = threading.Condition()
         self.dropped = 0
+        self.unfinished = 0
         self._closed = False
 
     def __len__(self) -> int:
@@ -245,7 +248,9 @@ class BoundedQueue:
                 self._items.popleft()
                 dropped = 1
                 self.dropped += 1
+                self.unfinished -= 1
             self._items.append(item)
+            self.unfinished += 1
             self._cond.notify_all()
             return dropped
 
@@ -257,6 +262,11 @@ class BoundedQueue:
             item = self._items.popleft()
             self._cond.notify_all()
             return item
+
+    def task_done(self) -> None:
+        """Mark one item taken by :meth:`get` as processed."""
+        with self._cond:
+            self.unfinished -= 1
 
     def release_blocked(self) -> None:
         """Wake producers blocked on a full queue (at shutdown)."""
@@ -294,6 +304,11 @@ class Reorderer:
 
     def __len__(self) -> int:
         return sum(len(s.heap) for s in self._seqs.values())
+
+    @property
+    def pending(self) -> bool:
+        """True if any message is buffered (only then can :meth:`poll` release one)."""
+        return any(s.heap for s in self._seqs.values())
 
     def push(self, stream: str, msg: Message, now: float) -> list[tuple[str, Message]]:
         h = msg.header
@@ -406,6 +421,10 @@ class StageRuntime:
         self._thread: threading.Thread | None = None
         self._accepting = False
         self._lock = threading.Lock()
+        # Held while re-order buffer, driver and core run: by the worker thread, or by a
+        # bus callback thread processing a frame inline (``block`` policy, see _on_payload).
+        self._proc = threading.Lock()
+        self._inline = self.opt.queue_policy == "block"
         self._counted = {"late": 0, "join": 0, "gaps": 0}
         self.error: BaseException | None = None
         self.done = threading.Event()
@@ -431,9 +450,38 @@ class StageRuntime:
         if n > 1 and stream in self.node.inputs and msg.header.frame % n != self.opt.worker:
             return
         self.metrics.frames_in.inc()
+        if self._inline and self._try_inline(stream, msg):
+            return
         if self.queue.put((stream, msg)):
             self.metrics.dropped["queue"].inc()
         self.metrics.queue_depth.set(len(self.queue))
+
+    def _try_inline(self, stream: str, msg: Message) -> bool:
+        """Process ``msg`` on this (bus callback) thread if nothing else is in flight.
+
+        Only with the ``block`` policy: there the callback may block anyway (lossless
+        back-pressure), and handing the frame to the worker thread would only add a thread
+        switch per frame (the largest single cost of the runtime on a loaded machine). With
+        the dropping policies the callback must return at once, so frames always go through
+        the queue. Order is kept: a frame is taken inline only when the queue holds nothing
+        unfinished and the worker is not processing (``_proc`` is free).
+        """
+        if not self._proc.acquire(blocking=False):
+            return False
+        try:
+            if self.queue.unfinished:
+                return False
+            self._process((stream, msg), time.monotonic())
+            return True
+        except Exception as exc:
+            # As in the worker: a non-GaitflowError stops the stage (exit 1, restarted).
+            self._accepting = False
+            self.error = exc
+            log.exception("%s: processing failed", self.node.name)
+            self.done.set()
+            return True
+        finally:
+            self._proc.release()
 
     # -- worker thread ---------------------------------------------------------------
 
@@ -473,7 +521,6 @@ class StageRuntime:
             if dt > self.opt.budget_s:
                 self.metrics.over_budget.inc()
         self._publish(outs)
-        self._sync_counts()
 
     def _sync_counts(self) -> None:
         for name, now, metric in (
@@ -485,29 +532,38 @@ class StageRuntime:
                 metric.inc(now - self._counted[name])
                 self._counted[name] = now
 
+    def _process(self, item: tuple[str, Message] | None, now: float) -> None:
+        """Re-order, drive the core and publish; the caller holds ``_proc``."""
+        released = self.reorder.poll(now) if self.reorder.pending else []
+        if item is not None:
+            stream, msg = item
+            if stream in self.node.inputs:
+                released += self.reorder.push(stream, msg, now)
+            else:
+                released.append((stream, msg))
+        for stream, msg in released:
+            self._offer(stream, msg)
+        self._sync_counts()
+
     def _run(self) -> None:
         tick = max(0.005, min(0.05, self.opt.reorder_timeout_s / 4))
         try:
             while True:
                 item = self.queue.get(timeout=tick)
-                now = time.monotonic()
                 if item is _STOP:
                     break
-                released = self.reorder.poll(now)
-                if item is not None:
-                    stream, msg = item
-                    if stream in self.node.inputs:
-                        released += self.reorder.push(stream, msg, now)
-                    else:
-                        released.append((stream, msg))
-                    self.metrics.queue_depth.set(len(self.queue))
-                for stream, msg in released:
+                if self.error is not None:
+                    return  # an inline step failed: stop like a failed worker
+                with self._proc:
+                    self._process(item, time.monotonic())
+                    if item is not None:
+                        self.queue.task_done()
+                        self.metrics.queue_depth.set(len(self.queue))
+            with self._proc:
+                for stream, msg in self.reorder.flush():
                     self._offer(stream, msg)
+                self._publish(self.driver.finish())
                 self._sync_counts()
-            for stream, msg in self.reorder.flush():
-                self._offer(stream, msg)
-            self._publish(self.driver.finish())
-            self._sync_counts()
         except Exception as exc:
             # Not swallowed: stored for stop()/serve() to re-raise in the main thread.
             self.error = exc

@@ -122,3 +122,11 @@ def test_parameters_are_declared_with_table_one_defaults():
     assert d["resample_hz"] == 100.0 and d["max_gap_s"] == 0.3
     with pytest.raises(Exception, match="refine"):
         gs.PARAMS.resolve({"refine": "magic"})
+
+
+def test_an_endless_live_trial_is_closed_in_bounded_pieces(session):
+    _, _, frames, cal = session
+    outs = run_stage(frames[:230], cal, max_frames=100, live_every=0)
+    trials = [o for o in outs if o.STREAM == "summary" and o.results["scope"] == "trial"]
+    assert [len(o.results["frames"]) for o in trials] == [100, 100, 30]
+    assert all(validation_errors(o.results) == [] for o in trials)
