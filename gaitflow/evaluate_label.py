@@ -14,7 +14,13 @@ space X right, Y down, Z forward.
 
 from __future__ import annotations
 
+import argparse
+import pickle
+import time
+from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -208,3 +214,139 @@ def synthetic_walk(
             nears.append(near)
             k += 1
     return Walk(frames, truth, nears)
+
+
+# --- evaluation on simulated sessions ---------------------------------------------------
+
+DEFAULT_TRIALS = (
+    ("bz_HC002D_straight_HC002D06", 1),
+    ("c3dorg_s00_vicon_CGM24", 2),
+    ("btk_PiG_Motion-FlatFoot-Full", 2),
+    ("btk_PiG_Motion3_FF", 2),
+    ("btk_c3dorg_sample04_Matt", 2),
+)
+UPSTREAM = ("calibrate", "clean", "detect", "locate")
+
+
+def upstream_messages(trial: str, seed: int, jobs: int = 2) -> tuple[list[Any], list[Any]]:
+    """Simulate a quick session and run it through calibrate .. locate inline.
+
+    Returns ``(messages, truths)``: the calibration record and every ``markers`` message in
+    protocol order (what model and label read), and the GroundTruth of the walking frames
+    (for scoring only; it never enters a stage).
+    """
+    from gaitflow.commands.demo import rendered_frames
+    from gaitflow.markers import trial_kind
+    from gaitflow.stages.graph import load
+    from gaitflow.stages.inline import InlinePipeline
+
+    msgs: list[Any] = []
+    truths: list[Any] = []
+
+    def sink(stream: str, msg: Any) -> None:
+        if stream in ("calibration", "markers"):
+            msgs.append(msg)
+
+    pipe = InlinePipeline(load(), stages=UPSTREAM, sink=sink)
+    _, frames = rendered_frames(trial, seed, True, jobs, with_truth=True)
+    for raw, truth in frames:
+        if trial_kind(raw.header.trial) == "walk":
+            truths.append(truth)
+        pipe.push(raw)
+    pipe.finish()
+    return msgs, truths
+
+
+def label_session(
+    msgs: list[Any], params: Mapping[str, Any] | None = None
+) -> tuple[list[Any], float]:
+    """Run model and label on cached upstream messages; (labelled messages, s per frame)."""
+    from gaitflow.stages.graph import load
+    from gaitflow.stages.inline import InlinePipeline
+
+    out: list[Any] = []
+    pipe = InlinePipeline(
+        load(),
+        stages=("model", "label"),
+        params={"label": dict(params or {})},
+        sink=lambda s, m: out.append(m) if s == "labelled" else None,
+    )
+    t0 = time.perf_counter()
+    for m in msgs:
+        pipe.push(m)
+    pipe.finish()
+    return out, (time.perf_counter() - t0) / max(1, len(out))
+
+
+def _cached(trial: str, seed: int, cache: str | None, jobs: int) -> tuple[list[Any], list[Any]]:
+    if not cache:
+        return upstream_messages(trial, seed, jobs)
+    path = Path(cache) / f"{trial}_{seed}.pkl"
+    if path.exists():
+        with path.open("rb") as f:
+            return pickle.load(f)
+    res = upstream_messages(trial, seed, jobs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:
+        pickle.dump(res, f)
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m gaitflow.evaluate_label``: labelling accuracy/recall per simulated trial."""
+    p = argparse.ArgumentParser(prog="python -m gaitflow.evaluate_label", description=main.__doc__)
+    p.add_argument(
+        "--trials",
+        nargs="*",
+        default=[f"{t}:{s}" for t, s in DEFAULT_TRIALS],
+        help="trial[:seed] of gaitflow.sim (default: five bundled trials)",
+    )
+    p.add_argument("--jobs", type=int, default=2, help="render worker processes")
+    p.add_argument(
+        "--cache",
+        default=None,
+        help="directory caching the upstream (calibrate..locate) output per trial and seed",
+    )
+    p.add_argument("--param", action="append", default=[], help="label parameter NAME=VALUE")
+    p.add_argument("--markers", action="store_true", help="print per-marker recall/precision")
+    args = p.parse_args(argv)
+    params: dict[str, Any] = {}
+    for kv in args.param:
+        k, _, v = kv.partition("=")
+        params[k] = v
+    rows = []
+    for spec in args.trials:
+        trial, _, seed = spec.partition(":")
+        msgs, truths = _cached(trial, int(seed or 1), args.cache, args.jobs)
+        labelled, dt = label_session(msgs, params)
+        r = score_labelling(labelled, truths)
+        rows.append((f"{trial}:{seed or 1}", r, dt))
+        if args.markers:
+            for name in MARKER_NAMES:
+                if name in r["per_marker_recall"] or name in r["per_marker_precision"]:
+                    print(
+                        f"  {name:6s} recall {r['per_marker_recall'].get(name, np.nan):5.2f}"
+                        f"  precision {r['per_marker_precision'].get(name, np.nan):5.2f}"
+                    )
+    hdr = f"{'trial':38s} {'frames':>6s} {'acc':>6s} {'acc_gait':>8s} {'prec':>6s} {'recall':>6s}"
+    print(hdr + f" {'gait_rec':>8s} {'ms/frame':>8s}")
+    for name, r, dt in rows:
+        print(
+            f"{name:38s} {r['frames']:6d} {r['accuracy']:6.3f} {r['accuracy_gait']:8.3f} "
+            f"{r['precision']:6.3f} {r['recall']:6.3f} {gait_recall(r):8.3f} {1e3 * dt:8.1f}"
+        )
+    return 0
+
+
+def gait_recall(r: Mapping[str, Any]) -> float:
+    """Mean recall over the near HIP, KNE, ANK, HEE, TOE and far HEE, TOE (what gait uses)."""
+    vals = [
+        v
+        for k, v in r["per_marker_recall"].items()
+        if k[2:] in ("HEE", "TOE") or k[2:] in ("HIP", "KNE", "ANK")
+    ]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

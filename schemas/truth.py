@@ -34,3 +34,9 @@ class GroundTruth(Message):
     visible_fraction: list = value_field(
         list, [], "per marker, fraction of its image footprint not hidden (0..1)"
     )
+    merged: list = value_field(
+        list,
+        [],
+        "per marker, visible but its image disc (over the exposure, + 1 px) touches another"
+        " visible marker's: the two cannot be resolved as separate blobs",
+    )

@@ -21,7 +21,11 @@ Rules for markers a source trial lacks (all documented in docs/readme/simulator.
   height / 0.55).
 
 Markers are moved outwards along their segment's normal by the difference between the
-simulated and the source marker radius, so that every sphere sits on the skin.
+simulated and the source marker radius. Every marker is taped to the skin, so a **skin
+patch** (a short capsule of the segment's material, about 70 mm across, its axis along the
+segment and tangent to the marker's base) is added under each marker: the body surface then
+passes ``marker radius + base`` behind the marker centre along its normal, wherever the
+nominal capsule (a smooth, round limb) is thinner or thicker than the real segment there.
 """
 
 from __future__ import annotations
@@ -280,6 +284,10 @@ class Body:
     radius : (S,) capsule radii.
     material : (S,) str, surface material per capsule ("skin", "shirt", "shorts").
     stature : estimated stature H in mm (ASIS height / 0.55).
+    normal : (F, 20, 3) unit outward skin normal under each marker.
+
+    The capsules are the 20 segments of :data:`SEGMENTS` followed by one skin patch per
+    marker (MARKER_NAMES order), so S = 40.
     """
 
     t: np.ndarray
@@ -289,6 +297,7 @@ class Body:
     radius: np.ndarray
     material: np.ndarray
     stature: float
+    normal: np.ndarray | None = None
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Markers (K, 20, 3) and capsule ends (K, S, 3) x2 at times t (K,), linear."""
@@ -391,12 +400,15 @@ def build_body(
     source_marker_radius: float = 7.0,
     swing_gain: float = 0.7,
     static: bool = False,
+    marker_base_mm: float = 2.0,
+    patch_mm: float = 70.0,
 ) -> Body:
     """Markers, capsules and radii for every frame of ``trial``.
 
     A segment's radius is its nominal radius, reduced where needed so that every marker it
     must not swallow stays outside it by the marker radius plus 2 mm (1st percentile over
-    the trial), which puts each marker sphere on the skin.
+    the trial). Then each marker gets a skin patch (:func:`skin_patches`) whose surface
+    passes ``marker_radius + marker_base_mm`` behind the marker centre along its normal.
     """
     m = derive_markers(trial, marker_radius)
     ends = _segment_ends(m, swing_gain, static, marker_radius)
@@ -416,6 +428,8 @@ def build_body(
         "TOE": "foot",
     }
     markers = np.empty((len(trial.t), len(MARKER_NAMES), 3))
+    normals = np.empty_like(markers)
+    axes = np.empty_like(markers)
     for name in MARKER_NAMES:
         side, site = name.split("_")
         seg = own[site] if site in ("ASI", "PSI", "HIP", "SHO") else f"{side}_{own[site]}"
@@ -425,6 +439,8 @@ def build_body(
         w = np.clip(((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-9), 0, 1)
         normal = _unit(p - (a + w[:, None] * ab))
         markers[:, MARKER_INDEX[name]] = p + (0.0 if site == "HIP" else grow) * normal
+        normals[:, MARKER_INDEX[name]] = normal
+        axes[:, MARKER_INDEX[name]] = _unit(ab)
     radii = np.empty(len(SEGMENTS))
     for k, (name, nominal, _material, keep_out) in enumerate(SEGMENTS):
         a, b = ends[name]
@@ -435,6 +451,10 @@ def build_body(
         radii[k] = max(r, 25.0)
     cap_a = np.stack([ends[n][0] for n in SEGMENT_NAMES], axis=1)
     cap_b = np.stack([ends[n][1] for n in SEGMENT_NAMES], axis=1)
+    pa, pb, pr = skin_patches(markers, normals, axes, marker_radius, marker_base_mm, patch_mm)
+    cap_a = np.concatenate([cap_a, pa], axis=1)
+    cap_b = np.concatenate([cap_b, pb], axis=1)
+    radii = np.r_[radii, pr]
     # A marker sphere cannot sink into the floor: lift the subject when the source's floor
     # level (lab calibration, smaller markers) would put one below it.
     lift = max(0.0, marker_radius + 1.0 - float(np.nanmin(markers[..., 2])))
@@ -442,9 +462,62 @@ def build_body(
         markers[..., 2] += lift
         cap_a[..., 2] += lift
         cap_b[..., 2] += lift
-    material = np.array([s[2] for s in SEGMENTS])
+    seg_mat = {s[0]: s[2] for s in SEGMENTS}
+    patch_mat = []
+    for name in MARKER_NAMES:
+        side, site = name.split("_")
+        seg = own[site] if site in ("ASI", "PSI", "HIP", "SHO") else f"{side}_{own[site]}"
+        patch_mat.append(seg_mat[seg])
+    material = np.array([s[2] for s in SEGMENTS] + patch_mat)
     stature = float(m["_stature"][0, 0])
-    return Body(trial.t.copy(), markers, cap_a, cap_b, radii, material, stature)
+    return Body(trial.t.copy(), markers, cap_a, cap_b, radii, material, stature, normals)
+
+
+def skin_patches(
+    markers: np.ndarray,
+    normals: np.ndarray,
+    axes: np.ndarray,
+    marker_radius: float,
+    base_mm: float,
+    patch_mm: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One capsule of skin under every marker: the surface the marker is taped to.
+
+    The capsule's axis runs along the segment (its component across the marker normal),
+    with half-length 0.3 ``patch_mm``, at depth ``rho`` below the marker's base, where
+    ``rho`` is its radius: its surface touches the plane of the base at the base point
+    ``c - (marker_radius + base_mm) n``, curved like a limb across the segment and flat
+    along it. ``rho`` is ``patch_mm / 2``, reduced where needed (1st percentile over the
+    frames) so that no other marker sinks into the patch.
+
+    Parameters
+    ----------
+    markers, normals, axes : (F, N, 3) marker centres (mm), unit outward normals, unit
+        directions of the marker's segment axis.
+
+    Returns
+    -------
+    a, b : (F, N, 3) capsule end points; rho : (N,) radii, mm.
+    """
+    n_m = markers.shape[1]
+    base = markers - (marker_radius + base_mm) * normals
+    tang = axes - (axes * normals).sum(-1, keepdims=True) * normals  # |tang| = sin(angle)
+    half = 0.3 * patch_mm
+    rho = np.full(n_m, 0.5 * patch_mm)
+    for i in range(n_m):
+        for j in range(n_m):
+            if i == j:
+                continue
+            # Another marker's centre must stay rho + r + 2 mm from this patch's axis; the
+            # axis moves with rho, so shrink by a few fixed-point steps.
+            for _ in range(4):
+                c0 = base[:, i] - rho[i] * normals[:, i]
+                d = _dist_to_segment(markers[:, j], c0 - half * tang[:, i], c0 + half * tang[:, i])
+                rho[i] = max(8.0, min(rho[i], float(np.percentile(d, 1)) - marker_radius - 2.0))
+    centre = base - rho[None, :, None] * normals
+    a = centre - half * tang
+    b = centre + half * tang
+    return a, b, rho
 
 
 def knee_flexion(markers: np.ndarray) -> np.ndarray:

@@ -16,7 +16,9 @@ Effects, per frame:
   noise.
 - Retro-reflective markers: radiance ``marker_gain * 65535 * (2.5 m / r)^2`` mixed with the
   background by the pixel's coverage (supersampled disc, averaged over the exposure for
-  motion blur), clipped at 65535: saturated cores with partial-pixel edges.
+  motion blur), clipped at 65535: saturated cores with partial-pixel edges. Spheres are
+  z-buffered against the body and against each other per sub-sample, so a marker behind
+  another one is hidden where the nearer sphere covers it.
 - Depth: pixels covered by a marker beyond ``hole_coverage``, or saturated, are 0; partly
   covered ones mix marker and background depth. Axial noise follows Fankhauser et al.
   (2015), see :func:`axial_sigma_mm`. Depth edges give flying (mixed) and invalid pixels.
@@ -396,7 +398,10 @@ class Renderer:
             cover = np.zeros(z.shape)
             zmark = np.full(z.shape, np.inf)
             sph_c = self.to_cam(pose.spheres)  # (B, N, 3)
-            mid = sph_c[sph_c.shape[0] // 2]
+            # Mid-exposure: the middle sample, or the mean of the two middle ones (the
+            # samples are symmetric about t_mid, so this is t_mid to first order).
+            nb = sph_c.shape[0]
+            mid = 0.5 * (sph_c[(nb - 1) // 2] + sph_c[nb // 2])
             with np.errstate(invalid="ignore"):
                 uv = self.cam.project(np.where(np.isfinite(mid), mid, -1.0))
                 in_view[:] = (
@@ -411,12 +416,26 @@ class Renderer:
             sboxes = self._boxes(
                 np.swapaxes(sph_c, 0, 1), np.full(n_sph, cfg.marker_radius_mm), 1.5
             )
-            for j in range(n_sph):
+            usable = (
+                (sboxes[:, 0] < sboxes[:, 1])
+                & (sboxes[:, 2] < sboxes[:, 3])
+                & np.isfinite(sph_c).all(axis=(0, 2))
+            )
+            # Pairs of marker boxes that overlap in the image: only these can hide each other.
+            overlap = (
+                (sboxes[:, None, 0] < sboxes[None, :, 1])
+                & (sboxes[None, :, 0] < sboxes[:, None, 1])
+                & (sboxes[:, None, 2] < sboxes[None, :, 3])
+                & (sboxes[None, :, 2] < sboxes[:, None, 3])
+                & usable[:, None]
+                & usable[None, :]
+            )
+            np.fill_diagonal(overlap, False)
+            for j in np.flatnonzero(usable):
                 bv0, bv1, bu0, bu1 = (int(v) for v in sboxes[j])
-                if bv0 >= bv1 or bu0 >= bu1 or not np.isfinite(sph_c[:, j]).all():
-                    continue
                 sb = (slice(bv0, bv1), slice(bu0, bu1))
-                seen[j] = self._sphere(sph_c[:, j], sb, z, cover, zmark, (v0, u0))
+                others = sph_c[:, overlap[j]]
+                seen[j] = self._sphere(sph_c[:, j], sb, z, cover, zmark, (v0, u0), others)
             hit = cover > 0
             if hit.any():
                 rm = np.where(hit, zmark, 1.0) * self.rlen[box] / 1000.0
@@ -498,10 +517,15 @@ class Renderer:
         cover: np.ndarray,
         zmark: np.ndarray,
         origin: tuple[int, int] = (0, 0),
+        others: np.ndarray | None = None,
     ) -> float:
         """Accumulate one marker's supersampled, motion-blurred coverage.
 
         centres : (B, 3) camera-space centres over the exposure; box : its pixel box.
+        others : (B, M, 3) centres of the other markers whose boxes overlap this one; a
+        sub-sample (sub-pixel ray at one instant) is this marker's only if no other sphere
+        is hit nearer along that ray at that instant (a z-buffer between spheres), and no
+        body surface is nearer (``z``).
         Updates ``cover`` (pixel coverage 0..1) and ``zmark`` (marker front depth) in
         place; these and ``z`` are views of a box whose top-left pixel is ``origin``
         (row, col). Returns the visible fraction of the marker's footprint.
@@ -528,6 +552,14 @@ class Renderer:
             slice(sl[1].start - origin[1], sl[1].stop - origin[1]),
         )
         vis = ok & (zt < z[loc][..., None, None])
+        if others is not None:
+            for m in range(others.shape[1]):
+                o = others[:, m]  # (B, 3)
+                bo = rx * o[:, 0] + ry * o[:, 1] + o[:, 2]
+                disc_o = bo * bo - dd * ((o * o).sum(axis=1) - rad * rad)
+                hit_o = disc_o >= 0
+                zo = (bo - np.sqrt(np.where(hit_o, disc_o, 0.0))) / dd
+                vis &= ~(hit_o & (zo > 0) & (zo < zt))
         nvis = vis.sum(axis=(2, 3))
         cov = nvis / (ok.shape[2] * ok.shape[3])
         free = ok.sum()
@@ -535,7 +567,8 @@ class Renderer:
         zfront = np.where(vis, zt, np.inf).min(axis=(2, 3))
         cv = cover[loc]
         zm = zmark[loc]
-        # Two markers overlapping in one pixel: coverage adds, depth keeps the nearer.
+        # Sub-samples of different markers are disjoint (z-buffered above), so coverage
+        # adds; the depth keeps the nearer front.
         np.minimum(cv + cov, 1.0, out=cv)
         np.minimum(zm, zfront, out=zm)
         return seen

@@ -7,7 +7,8 @@ a seed and any recording can be iterated more than once.
 
 Timing: frames are nominally 1/30 s apart; the capture time has a small Gaussian jitter,
 and frames are dropped now and then (never the first or last one), leaving gaps in the
-frame index. Ground truth is rendered at the actual capture time.
+frame index. Ground truth is the marker positions at the middle of each frame's exposure
+(the actual capture time), exactly.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from gaitflow.schemas.truth import GroundTruth
 from gaitflow.sim.body import build_body, knee_flexion, load_trial
 from gaitflow.sim.config import SimConfig
 from gaitflow.sim.render import Renderer
-from gaitflow.sim.truth import spatiotemporal, visibility
+from gaitflow.sim.truth import merged_flags, spatiotemporal, visibility
 from gaitflow.sim.walk import CalibrationMotion, StaticMotion, WalkMotion
 
 CAMERA_ID = "cam0"
@@ -101,8 +102,9 @@ class Recording:
     def _truth(self, raw: RawFrame, pose: Any, out: Any, t: float) -> GroundTruth:
         ses = self.session
         cfg = ses.config
-        nb = pose.spheres.shape[0]
-        pos_w = pose.spheres[nb // 2]
+        # The truth is the marker position at mid-exposure, t itself (the blur samples
+        # straddle it and an even count has no sample there).
+        pos_w = self.motion.markers_caps(np.array([t]))[0][0] if self.kind != "calibration" else None
         n = len(MARKER_NAMES)
         position = np.full((n, 3), np.nan)
         pixel = np.full((n, 2), np.nan)
@@ -112,11 +114,17 @@ class Recording:
         knee_ref = [float("nan"), float("nan")]
         pass_name = ""
         fraction = [0.0] * n
+        merged = [False] * n
         if self.kind in ("walk", "static"):
             fraction = [float(v) for v in out.seen]
             position = ses.renderer.to_cam(pos_w)
             pixel = ses.camera.project(position)
             visible, occluded = visibility(out.seen, out.in_view)
+            streak = ses.renderer.to_cam(pose.spheres)  # (B, 20, 3) over the exposure
+            with np.errstate(invalid="ignore"):
+                streak_px = ses.camera.project(streak.reshape(-1, 3)).reshape(-1, n, 2)
+                radius_px = ses.camera.fx * cfg.marker_radius_mm / streak[..., 2]
+            merged = [bool(v) for v in merged_flags(streak_px, radius_px, visible)]
             knee = knee_flexion(pos_w[None])[0]
             knee_ref = [float(v) for v in self.motion.knee_ref(np.array([t]))[0]]
             if self.kind == "walk":
@@ -142,6 +150,7 @@ class Recording:
             knee_flexion_ref=knee_ref,
             pass_name=pass_name,
             visible_fraction=fraction,
+            merged=merged,
         )
 
     def frames(self) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
@@ -252,6 +261,8 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
         cfg.marker_radius_mm,
         cfg.source_marker_diameter_mm / 2,
         cfg.arm_swing_gain,
+        marker_base_mm=cfg.marker_base_mm,
+        patch_mm=cfg.skin_patch_mm,
     )
     renderer = Renderer(cfg, bank_seed=seed)
     cam = cfg.camera

@@ -30,6 +30,41 @@ def visibility(seen: np.ndarray, in_view: np.ndarray) -> tuple[np.ndarray, np.nd
     return visible, occluded
 
 
+# Two blobs whose discs come closer than this (px) join under 8-connectivity: partly covered
+# rim pixels bridge the gap.
+MERGE_GAP_PX = 1.0
+
+
+def merged_flags(streak_px: np.ndarray, radius_px: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Visible markers whose image footprint touches another visible marker's.
+
+    Parameters
+    ----------
+    streak_px : (B, N, 2) projected centres (u, v) at the B instants of the exposure.
+    radius_px : (B, N) projected sphere radius, px.
+    visible : (N,) bool.
+
+    Returns
+    -------
+    (N,) bool: visible, and some other visible marker's disc at any instant of the exposure
+    comes within ``MERGE_GAP_PX`` of this one's at any instant (motion-blur streaks count).
+    """
+    n = streak_px.shape[1]
+    out = np.zeros(n, dtype=bool)
+    idx = np.flatnonzero(visible)
+    if len(idx) < 2:
+        return out
+    p = streak_px[:, idx]  # (B, V, 2)
+    r = radius_px[:, idx]
+    # gap[b, i, b2, j]: edge-to-edge distance between marker i at instant b and j at b2.
+    d = np.linalg.norm(p[:, :, None, None, :] - p[None, None, :, :, :], axis=-1)
+    gap = np.nan_to_num(d - r[:, :, None, None] - r[None, None, :, :], nan=np.inf)
+    close = gap.min(axis=(0, 2)) < MERGE_GAP_PX
+    np.fill_diagonal(close, False)
+    out[idx] = close.any(axis=1)
+    return out
+
+
 def _mean(xs: list[float]) -> float:
     return float(np.mean(xs)) if xs else float("nan")
 

@@ -406,6 +406,8 @@ class StaticMotion:
             cfg.source_marker_diameter_mm / 2,
             cfg.arm_swing_gain,
             static=True,
+            marker_base_mm=cfg.marker_base_mm,
+            patch_mm=cfg.skin_patch_mm,
         )
         k = SEGMENT_INDEX["pelvis"]
         centre = 0.5 * (body.cap_a[0, k] + body.cap_b[0, k])
