@@ -330,8 +330,13 @@ def stage_config(role: Mapping[str, Any]) -> dict[str, Any]:
     """
     camera = role.get("camera", "*")
     host = role["watch"]["metrics_host"]
+    doc: dict[str, Any] = {"bus": dict(role["bus"])}
+    if role["role"] == "edge" and any(s["name"] == "grab" for s in role["stages"]):
+        # Grab stamps this id on every frame; its `source` (a camera driver, e.g.
+        # kinect2) is set per installation.
+        doc["params"] = {"grab": {"camera": camera}}
     return {
-        "bus": dict(role["bus"]),
+        **doc,
         "runtime": {
             "camera": camera,
             "metrics_host": host,

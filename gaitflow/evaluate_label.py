@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from gaitflow.camera import Camera
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES, SITES
@@ -313,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     params: dict[str, Any] = {}
     for kv in args.param:
         k, _, v = kv.partition("=")
-        params[k] = v
+        params[k] = yaml.safe_load(v)  # typed as in pipeline.yaml
     rows = []
     for spec in args.trials:
         trial, _, seed = spec.partition(":")

@@ -130,6 +130,10 @@ PARAMS = ParamSet(
 )
 
 NEAR_FOOT = ("TIB", "ANK", "HEE", "TOE")
+# Segments whose measured length is checked against the stature-scaled template, and the
+# relative deviation beyond which the template's length is used instead.
+SEGMENTS = (("HIP", "KNE"), ("KNE", "ANK"), ("ANK", "HEE"), ("ANK", "TOE"), ("HEE", "TOE"))
+PLAUSIBLE = 0.25
 PELVIS = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "PSI"), ("far", "ASI"))
 MISS_COST = 9.0  # a missing label costs as much as a 3-sigma fit
 
@@ -185,6 +189,15 @@ class Geometry:
         # Sagittal (forward, height) distances: see _rigid.
         near = offsets[0]
         dist = np.hypot(near[:, None, 0] - near[None, :, 0], near[:, None, 2] - near[None, :, 2])
+        # A measured segment far (> PLAUSIBLE) from the stature-scaled template is a static
+        # labelling error (a crouched pose, merged blobs), not anatomy: the template's
+        # length replaces it.
+        t0 = tpl[:, [0, 1]]  # template (forward, height)
+        for a, b in SEGMENTS:
+            ia, ib = SITES.index(a), SITES.index(b)
+            dt = float(np.linalg.norm(t0[ia] - t0[ib]))
+            if not abs(dist[ia, ib] / dt - 1.0) <= PLAUSIBLE:
+                dist[ia, ib] = dist[ib, ia] = dt
         return cls(offsets, dist, sho_h)
 
     def d(self, a: str, b: str) -> float:
@@ -334,6 +347,32 @@ def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np
     sig = (20.0 + 0.2 * d0) if loose else (10.0 + 0.1 * d0)
     d = np.hypot(pa[:, 0] - pb[:, 0], pa[:, 2] - pb[:, 2])
     return ((d - d0) / sig) ** 2
+
+
+def _interval(pa: np.ndarray, pb: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Squared-sigma cost of sagittal distances |pa - pb| outside [lo, hi] (0 inside).
+
+    For the wand markers (TIB, THI): where along its segment a wand marker sits varies
+    between subjects and between the two legs of one subject (by 50-90 mm in the trials),
+    so the static pose's one side does not give the other side's distance.
+    """
+    d = np.hypot(pa[:, 0] - pb[:, 0], pa[:, 2] - pb[:, 2])
+    return (np.maximum(lo - d, 0.0) ** 2 + np.maximum(d - hi, 0.0) ** 2) / 15.0**2
+
+
+def _on_segment(pa: np.ndarray, pw: np.ndarray, pb: np.ndarray, sig: float = 25.0) -> np.ndarray:
+    """Squared-sigma cost of wand points pw off the sagittal segment pa-pb (all (M, 3)).
+
+    A wand marker projects (sagittally) onto its segment's line, somewhere between the
+    joints: the perpendicular distance and the overshoot past either end count.
+    """
+    a, w, b = pa[:, [0, 2]], pw[:, [0, 2]], pb[:, [0, 2]]
+    e = b - a
+    L2 = np.maximum((e**2).sum(axis=1), 1.0)
+    t = ((w - a) * e).sum(axis=1) / L2
+    perp = np.abs(e[:, 0] * (w[:, 1] - a[:, 1]) - e[:, 1] * (w[:, 0] - a[:, 0])) / np.sqrt(L2)
+    over = np.sqrt(L2) * (np.maximum(-t + 0.1, 0.0) + np.maximum(t - 0.9, 0.0))
+    return (perp**2 + over**2) / sig**2
 
 
 def _slots(fr: _Frame, idx: list[int], cand: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -694,16 +733,17 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         pts = _slots(fr, foot_idx, cand, T)
         present = T < K
         pairs = [
-            (0, 1, geo.d("TIB", "ANK"), False),
             (1, 2, geo.d("ANK", "HEE"), False),
             (1, 3, geo.d("ANK", "TOE"), False),
             (2, 3, geo.d("HEE", "TOE"), False),
-            (0, 2, geo.d("TIB", "HEE"), True),
-            (0, 3, geo.d("TIB", "TOE"), True),
         ]
         for a, b, d0, loose in pairs:
             both = present[:, a] & present[:, b]
             cost[both] += _rigid(pts[both, a], pts[both, b], d0, loose)
+        # The tibia wand: somewhere on the lower shank, side-independent bounds.
+        shank = geo.d("KNE", "ANK")
+        both = present[:, 0] & present[:, 1]
+        cost[both] += _interval(pts[both, 0], pts[both, 1], 0.12 * shank, 0.8 * shank)
         allp = present.all(axis=1)
         if allp.any():
             sag = pts[allp][:, :, [0, 2]]  # (f, h)
@@ -723,8 +763,8 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             ak = present[:, 1] & present[:, k]
             cost[ak & ~(pts[:, k, 2] < pts[:, 1, 2] + margin)] = np.inf
         # A shank marker never drops far below its standing height while walking.
-        tib_h = geo.rel_sho("near", "TIB")[2]
-        cost[present[:, 0] & ~(pts[:, 0, 2] > 0.6 * tib_h)] = np.inf
+        ank_h = geo.rel_sho("near", "ANK")[2]
+        cost[present[:, 0] & ~(pts[:, 0, 2] > ank_h + 0.1 * shank)] = np.inf
 
         # Far heel and toe, completing the best near-foot hypotheses.
         far_idx = [MARKER_INDEX[f"{far}_HEE"], MARKER_INDEX[f"{far}_TOE"]]
@@ -793,27 +833,44 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     c3 = _base_cost(fr, slots, lc, T3)
     p3 = _slots(fr, slots, lc, T3)
     pr = T3 < K2
+    thigh, shank = geo.d("HIP", "KNE"), geo.d("KNE", "ANK")
     if hip is None:
-        for k, site in ((0, "KNE"), (1, "THI")):
+        both = pr[:, 4] & pr[:, 0]
+        c3[both] += _rigid(p3[both, 4], p3[both, 0], thigh)
+        both = pr[:, 4] & pr[:, 1]
+        c3[both] += _interval(p3[both, 4], p3[both, 1], 0.1 * thigh, 0.9 * thigh)
+        for k in (0, 1):
             both = pr[:, 4] & pr[:, k]
-            c3[both] += _rigid(p3[both, 4], p3[both, k], geo.d("HIP", site))
             c3[both & ~(p3[:, 4, 2] > p3[:, k, 2])] = np.inf
-    anchors = []
+    anchors = {}
     for site in ("TIB", "ANK"):
         i = MARKER_INDEX[f"{near}_{site}"]
         if fr.assign[i] >= 0:
-            anchors.append((fr.pos(i)[fr.assign[i]], site))
-    for a_pos, site in anchors:
-        c3[pr[:, 0]] += _rigid(p3[pr[:, 0], 0], a_pos[None], geo.d("KNE", site))
+            anchors[site] = fr.pos(i)[fr.assign[i]]
+    k0 = pr[:, 0]
+    for a_pos in anchors.values():
         # The knee is above the shank markers.
-        c3[pr[:, 0] & ~(p3[:, 0, 2] > a_pos[2])] = np.inf
+        c3[k0 & ~(p3[:, 0, 2] > a_pos[2])] = np.inf
+    if "ANK" in anchors:
+        c3[k0] += _rigid(p3[k0, 0], anchors["ANK"][None], shank)
+        if "TIB" in anchors:
+            n = int(k0.sum())
+            tib, ank = (np.repeat(anchors[k][None], n, 0) for k in ("TIB", "ANK"))
+            c3[k0] += _on_segment(p3[k0, 0], tib, ank)
+    elif "TIB" in anchors:
+        c3[k0] += _interval(p3[k0, 0], anchors["TIB"][None], 0.2 * shank, 0.88 * shank)
     if hip is not None:
-        c3[pr[:, 0]] += _rigid(p3[pr[:, 0], 0], hip[None], geo.d("HIP", "KNE"))
-        c3[pr[:, 1]] += _rigid(p3[pr[:, 1], 1], hip[None], geo.d("HIP", "THI"))
-    for k, site in ((0, "KNE"), (1, "THI")):
-        c3[pr[:, k] & ~(p3[:, k, 2] > 0.6 * geo.rel_sho("near", site)[2])] = np.inf
-    both = pr.all(axis=1)
-    c3[both] += _rigid(p3[both, 0], p3[both, 1], geo.d("THI", "KNE"))
+        c3[k0] += _rigid(p3[k0, 0], hip[None], thigh)
+        k1 = pr[:, 1]
+        c3[k1] += _interval(p3[k1, 1], hip[None], 0.1 * thigh, 0.9 * thigh)
+    kne_h = geo.rel_sho("near", "KNE")[2]
+    for k in (0, 1):
+        c3[pr[:, k] & ~(p3[:, k, 2] > 0.6 * kne_h)] = np.inf
+    both = pr.all(axis=1) if hip is None else pr[:, :2].all(axis=1)
+    c3[both] += _interval(p3[both, 0], p3[both, 1], 0.1 * thigh, 0.9 * thigh)
+    if hip is not None:
+        n = int(both.sum())
+        c3[both] += _on_segment(np.repeat(hip[None], n, 0), p3[both, 1], p3[both, 0])
     c3[both & ~(p3[:, 1, 2] > p3[:, 0, 2])] = np.inf
     j = int(np.argmin(c3))
     if not np.isfinite(c3[j]):
@@ -827,17 +884,18 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
 
 
 RIGID = (
-    ("TIB", "ANK", False),
     ("ANK", "HEE", False),
     ("ANK", "TOE", False),
     ("HEE", "TOE", False),
-    ("TIB", "HEE", True),
-    ("TIB", "TOE", True),
-    ("KNE", "TIB", False),
     ("KNE", "ANK", False),
     ("HIP", "KNE", False),
-    ("HIP", "THI", False),
-    ("THI", "KNE", False),
+)
+# Wand markers: (wand, joint, reference segment, lower, upper fraction of its length).
+WAND = (
+    ("TIB", "ANK", ("KNE", "ANK"), 0.12, 0.8),
+    ("TIB", "KNE", ("KNE", "ANK"), 0.2, 0.88),
+    ("THI", "HIP", ("HIP", "KNE"), 0.1, 0.9),
+    ("THI", "KNE", ("HIP", "KNE"), 0.1, 0.9),
 )
 
 
@@ -864,6 +922,15 @@ def _accept(
             na, nb = f"{side}_{a}", f"{side}_{b}"
             if na in pos and nb in pos:
                 e = _rigid(pos[na][None], pos[nb][None], geo.d(a, b), loose)[0]
+                if e > gate**2:
+                    for n in (na, nb):
+                        if MARKER_INDEX[n] in chosen:
+                            bad.add(MARKER_INDEX[n])
+        for w, j, (r0, r1), lo, hi in WAND:
+            na, nb = f"{side}_{w}", f"{side}_{j}"
+            if na in pos and nb in pos:
+                d0 = geo.d(r0, r1)
+                e = _interval(pos[na][None], pos[nb][None], lo * d0, hi * d0)[0]
                 if e > gate**2:
                     for n in (na, nb):
                         if MARKER_INDEX[n] in chosen:

@@ -7,7 +7,7 @@ import pytest
 
 from gaitflow.sim.config import SimConfig
 from gaitflow.sim.render import SAT, FramePose, Renderer, axial_sigma_mm
-from gaitflow.sim.truth import visibility
+from gaitflow.sim.truth import merged_flags, visibility
 
 
 @pytest.fixture(scope="module")
@@ -155,3 +155,40 @@ def test_marker_behind_arm_is_dark_and_flagged_occluded(flat_renderer: Renderer)
     visible, occluded = visibility(free.seen, free.in_view)
     assert visible[0] and not occluded[0]
     assert free.ir[v - 6 : v + 7, u - 6 : u + 7].max() == SAT
+
+
+def test_marker_behind_marker_is_z_buffered_and_flagged(flat_renderer: Renderer) -> None:
+    """A sphere half behind another: hidden where the nearer covers it, not added."""
+    r = flat_renderer
+    front = np.array([0.0, 0.0, 2300.0])
+    px_mm = 2300.0 / r.cam.fx
+    # 12 mm to the side (less than a radius) and 60 mm behind: mostly hidden.
+    behind = front + np.array([12.0, 0.0, 60.0])
+    sph = np.stack([front, behind]) @ r.R + r.C
+    pose = FramePose(sph[None], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    out = r.render(pose, np.random.default_rng(4))
+    visible, occluded = visibility(out.seen, out.in_view)
+    assert visible[0] and out.seen[0] == 1.0
+    assert occluded[1] and not visible[1] and 0.0 < out.seen[1] < 0.5
+    # Control: the rear sphere alone is fully seen, and further aside both are visible.
+    alone = r.render(_pose(behind @ r.R + r.C), np.random.default_rng(4))
+    assert alone.seen[0] == 1.0
+    aside = front + np.array([40.0, 0.0, 60.0])
+    sph2 = np.stack([front, aside]) @ r.R + r.C
+    pose2 = FramePose(sph2[None], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    out2 = r.render(pose2, np.random.default_rng(4))
+    assert visible_both(out2) and 0.5 < out2.seen[1] < 1.0
+    # Their image discs touch (centres 40 mm ~ 6 px apart, radii ~ 2 px + rim): merged.
+    streak = r.cam.project(np.stack([front, aside]))[None]
+    rad = r.cam.fx * r.cfg.marker_radius_mm / np.array([[front[2], aside[2]]])
+    assert merged_flags(streak, rad, np.array([True, True])).all()
+    # Far apart: not merged; an invisible neighbour never merges.
+    far = streak.copy()
+    far[0, 1, 0] += 60.0 / px_mm
+    assert not merged_flags(far, rad, np.array([True, True])).any()
+    assert not merged_flags(streak, rad, np.array([True, False])).any()
+
+
+def visible_both(out) -> bool:
+    visible, _ = visibility(out.seen, out.in_view)
+    return bool(visible.all())

@@ -436,8 +436,18 @@ def build_body(
         a, b = ends[seg]
         p = m[name]
         ab = b - a
-        w = np.clip(((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-9), 0, 1)
+        w = ((p - a) * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-9)
+        if site not in ("THI", "KNE", "TIB", "ANK"):
+            # Markers beyond a segment's end (trochanter, acromion, heel, toe, ASIS) point
+            # away from that end; limb markers point straight out of the limb.
+            w = np.clip(w, 0, 1)
         normal = _unit(p - (a + w[:, None] * ab))
+        if site in ("HEE", "TOE"):
+            # The heel faces backwards and the toe marker up-forwards in the sagittal plane;
+            # the heel-toe line's medial slant (the heel rule puts HEE 48 mm medial) is
+            # not the skin's orientation.
+            lat = m["_pelvis_left"]
+            normal = _unit(normal - (normal * lat).sum(axis=1, keepdims=True) * lat)
         markers[:, MARKER_INDEX[name]] = p + (0.0 if site == "HIP" else grow) * normal
         normals[:, MARKER_INDEX[name]] = normal
         axes[:, MARKER_INDEX[name]] = _unit(ab)
@@ -451,7 +461,17 @@ def build_body(
         radii[k] = max(r, 25.0)
     cap_a = np.stack([ends[n][0] for n in SEGMENT_NAMES], axis=1)
     cap_b = np.stack([ends[n][1] for n in SEGMENT_NAMES], axis=1)
-    pa, pb, pr = skin_patches(markers, normals, axes, marker_radius, marker_base_mm, patch_mm)
+    # A patch is curved like its segment (a real thigh or knee is flatter than a 35 mm
+    # cylinder), within [patch_mm / 2, 60 mm].
+    nominal = {s[0]: s[1] for s in SEGMENTS}
+    rho0 = np.empty(len(MARKER_NAMES))
+    for name in MARKER_NAMES:
+        side, site = name.split("_")
+        seg = own[site] if site in ("ASI", "PSI", "HIP", "SHO") else f"{side}_{own[site]}"
+        rho0[MARKER_INDEX[name]] = float(np.clip(nominal[seg], 0.5 * patch_mm, 60.0))
+    pa, pb, pr = skin_patches(
+        markers, normals, axes, marker_radius, marker_base_mm, patch_mm, rho0, m["_pelvis_left"]
+    )
     cap_a = np.concatenate([cap_a, pa], axis=1)
     cap_b = np.concatenate([cap_b, pb], axis=1)
     radii = np.r_[radii, pr]
@@ -480,6 +500,8 @@ def skin_patches(
     marker_radius: float,
     base_mm: float,
     patch_mm: float,
+    rho0: np.ndarray | None = None,
+    lateral: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One capsule of skin under every marker: the surface the marker is taped to.
 
@@ -487,13 +509,17 @@ def skin_patches(
     with half-length 0.3 ``patch_mm``, at depth ``rho`` below the marker's base, where
     ``rho`` is its radius: its surface touches the plane of the base at the base point
     ``c - (marker_radius + base_mm) n``, curved like a limb across the segment and flat
-    along it. ``rho`` is ``patch_mm / 2``, reduced where needed (1st percentile over the
-    frames) so that no other marker sinks into the patch.
+    along it. ``rho`` is ``rho0`` (default ``patch_mm / 2``), reduced where needed (1st
+    percentile over the frames) so that no other marker sinks into the patch and, for
+    markers of the same side of the body, none is covered by it in a side view (distances
+    measured in the sagittal plane when ``lateral`` is given).
 
     Parameters
     ----------
     markers, normals, axes : (F, N, 3) marker centres (mm), unit outward normals, unit
         directions of the marker's segment axis.
+    rho0 : (N,) wanted patch radii (curvature across the segment), mm.
+    lateral : (F, 3) unit lateral (pelvis left) axis, or None.
 
     Returns
     -------
@@ -503,16 +529,28 @@ def skin_patches(
     base = markers - (marker_radius + base_mm) * normals
     tang = axes - (axes * normals).sum(-1, keepdims=True) * normals  # |tang| = sin(angle)
     half = 0.3 * patch_mm
-    rho = np.full(n_m, 0.5 * patch_mm)
+    rho = np.full(n_m, 0.5 * patch_mm) if rho0 is None else np.asarray(rho0, float).copy()
     for i in range(n_m):
         for j in range(n_m):
             if i == j:
                 continue
             # Another marker's centre must stay rho + r + 2 mm from this patch's axis; the
             # axis moves with rho, so shrink by a few fixed-point steps.
+            pj = markers[:, j]
+            flat = lateral is not None and MARKER_NAMES[i][0] == MARKER_NAMES[j][0]
             for _ in range(4):
                 c0 = base[:, i] - rho[i] * normals[:, i]
-                d = _dist_to_segment(markers[:, j], c0 - half * tang[:, i], c0 + half * tang[:, i])
+                a, b = c0 - half * tang[:, i], c0 + half * tang[:, i]
+                if flat:
+                    # Same side: clearance in the sagittal plane, so the patch cannot
+                    # cover the marker in a side view.
+                    a, b, q = (
+                        x - (x * lateral).sum(axis=1, keepdims=True) * lateral
+                        for x in (a, b, pj)
+                    )
+                else:
+                    q = pj
+                d = _dist_to_segment(q, a, b)
                 rho[i] = max(8.0, min(rho[i], float(np.percentile(d, 1)) - marker_radius - 2.0))
     centre = base - rho[None, :, None] * normals
     a = centre - half * tang

@@ -281,10 +281,12 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
     ses.recordings["calibration"] = Recording(
         ses, "calibration", CalibrationMotion(cfg, seed), 0, "calibration"
     )
-    # The start point is where the outward pass begins, moved inside the field of view
-    # (clinics tape it where the camera sees the whole subject).
+    # The static pose is taken on the walking line in the middle of the view, side-on:
+    # clinics stand the subject where the camera sees every near-side marker square-on
+    # (towards the image edge the view is up to 25 degrees oblique, and the heel marker
+    # hides behind the ankle).
     start = walk.start_point()
-    start[0] = np.clip(start[0], x_lo + 600.0, x_hi - 600.0)
+    start[0] = 0.5 * (x_lo + x_hi)
     ses.recordings["static"] = Recording(
         ses, "static", StaticMotion(src, cfg, start, seed), 1, "static"
     )
