@@ -767,14 +767,19 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         cost[present[:, 0] & ~(pts[:, 0, 2] > ank_h + 0.1 * shank)] = np.inf
 
         # Far heel and toe, completing the best near-foot hypotheses.
-        far_idx = [MARKER_INDEX[f"{far}_HEE"], MARKER_INDEX[f"{far}_TOE"]]
-        T2 = _tuples(K, 2)
+        # The far tibia wand (often seen below the near knee) takes part only to absorb its
+        # blob: otherwise it passes for a hidden near tibia or heel.
+        far_idx = [MARKER_INDEX[f"{far}_{s}"] for s in ("HEE", "TOE", "TIB")]
+        T2 = _tuples(K, 3)
         c2 = _base_cost(fr, far_idx, cand, T2)
         p2 = _slots(fr, far_idx, cand, T2)
-        both2 = (T2 < K).all(axis=1)
+        pres2 = T2 < K
+        both2 = pres2[:, 0] & pres2[:, 1]
         c2[both2] += _rigid(p2[both2, 0], p2[both2, 1], geo.d("HEE", "TOE"))
         c2[both2 & ~(p2[:, 1, 0] > p2[:, 0, 0] + reach)] = np.inf
-        pres2 = T2 < K
+        for k in (0, 1):
+            tk = pres2[:, 2] & pres2[:, k]
+            c2[tk & ~(p2[:, 2, 2] > p2[:, k, 2] + 0.1 * shank)] = np.inf
         order = np.argsort(cost)[:30]
         total = np.full((len(order), len(T2)), np.inf)
         for r, m in enumerate(order):
@@ -790,6 +795,8 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                 depth_near = float(np.mean(ne))
                 for k in range(2):
                     cc[pres2[:, k] & (p2[:, k, 1] < depth_near + 20.0)] += 4.0
+                # An absorber must be clearly far-side: it only ever removes a blob.
+                cc[pres2[:, 2] & (p2[:, 2, 1] < depth_near + 50.0)] = np.inf
             total[r] = cost[m] + cc
         if np.isfinite(total).any():
             r, j = np.unravel_index(int(np.argmin(total)), total.shape)
@@ -801,8 +808,10 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                     chosen[i] = int(tf[k])
             keep2 = _unambiguous(total[r], T2, j, K, fr.ambiguity)
             # A lone far-foot blob is heel or toe only if last frame's track says which.
-            lone = int((tp < K).sum()) == 1
-            for k, i in enumerate(far_idx):
+            lone = int((tp[:2] < K).sum()) == 1
+            if tp[2] < K:
+                fr.free[cand[tp[2]]] = False  # absorbed, never published
+            for k, i in enumerate(far_idx[:2]):
                 if not (keep2[k] and tp[k] < K):
                     continue
                 if lone and not (

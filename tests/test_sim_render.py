@@ -162,8 +162,8 @@ def test_marker_behind_marker_is_z_buffered_and_flagged(flat_renderer: Renderer)
     r = flat_renderer
     front = np.array([0.0, 0.0, 2300.0])
     px_mm = 2300.0 / r.cam.fx
-    # 12 mm to the side (less than a radius) and 60 mm behind: mostly hidden.
-    behind = front + np.array([12.0, 0.0, 60.0])
+    # 6 mm to the side (half a radius) and 60 mm behind: mostly hidden.
+    behind = front + np.array([6.0, 0.0, 60.0])
     sph = np.stack([front, behind]) @ r.R + r.C
     pose = FramePose(sph[None], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
     out = r.render(pose, np.random.default_rng(4))
@@ -173,12 +173,12 @@ def test_marker_behind_marker_is_z_buffered_and_flagged(flat_renderer: Renderer)
     # Control: the rear sphere alone is fully seen, and further aside both are visible.
     alone = r.render(_pose(behind @ r.R + r.C), np.random.default_rng(4))
     assert alone.seen[0] == 1.0
-    aside = front + np.array([40.0, 0.0, 60.0])
+    aside = front + np.array([20.0, 0.0, 60.0])
     sph2 = np.stack([front, aside]) @ r.R + r.C
     pose2 = FramePose(sph2[None], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
     out2 = r.render(pose2, np.random.default_rng(4))
     assert visible_both(out2) and 0.5 < out2.seen[1] < 1.0
-    # Their image discs touch (centres 40 mm ~ 6 px apart, radii ~ 2 px + rim): merged.
+    # Their image discs overlap (centres 20 mm ~ 3 px apart, radii ~ 2 px): merged.
     streak = r.cam.project(np.stack([front, aside]))[None]
     rad = r.cam.fx * r.cfg.marker_radius_mm / np.array([[front[2], aside[2]]])
     assert merged_flags(streak, rad, np.array([True, True])).all()

@@ -232,3 +232,92 @@ def test_walk_events_alternate_on_every_trial(trial: str) -> None:
             m = ses.renderer.to_cam(wm.markers_caps(np.array([t]))[0][0])
             uv = ses.camera.project(m)
             assert not ((uv[:, 0] >= 0) & (uv[:, 0] < 512)).any()
+
+
+def _ring_depth(depth: np.ndarray, uv: np.ndarray, r_px: float) -> float:
+    """Median valid depth in the ring 0.5-2.5 px outside a marker's disc (NaN if < 4 px)."""
+    v0, u0 = int(uv[1]), int(uv[0])
+    h, w = depth.shape
+    sl = (slice(max(v0 - 12, 0), min(v0 + 13, h)), slice(max(u0 - 12, 0), min(u0 + 13, w)))
+    vv, uu = np.mgrid[sl]
+    d = np.hypot(uu - uv[0], vv - uv[1])
+    ring = (d > r_px + 0.5) & (d <= r_px + 2.5) & (depth[sl] > 0)
+    return float(np.median(depth[sl][ring])) if ring.sum() >= 4 else float("nan")
+
+
+def test_markers_sit_on_the_skin(ses) -> None:
+    """Around each marker's depth hole is the skin under it, not a surface 40-70 mm away.
+
+    Static side view: every visible, unmerged marker whose skin normal faces the camera
+    (within 45 degrees); the ring's median depth is within 15 mm of centre depth + radius.
+    """
+    rec = ses.recordings["static"]
+    raw, gt = rec.frame(len(rec) // 2)
+    body = rec.motion.body
+    rmark = ses.config.marker_radius_mm
+    checked = []
+    for j, name in enumerate(MARKER_NAMES):
+        if not gt.visible[j] or gt.merged[j]:
+            continue
+        c = gt.position[j]
+        n_cam = ses.renderer.R @ body.normal[0, j]
+        if -(n_cam @ c) / np.linalg.norm(c) < np.cos(np.radians(45.0)):
+            continue
+        ring = _ring_depth(raw.depth, gt.pixel[j], ses.camera.fx * rmark / c[2])
+        checked.append(name)
+        assert abs(ring - (c[2] + rmark)) < 15.0, (name, ring - c[2] - rmark)
+    assert {"R_HIP", "R_THI", "R_KNE", "R_TIB", "R_ANK"} <= set(checked), checked
+
+
+def test_lateral_markers_sit_on_the_skin_while_walking(ses) -> None:
+    """The lateral limb markers of the near side, over the walk: ring median within 15 mm."""
+    rec = ses.recordings["walk-01"]
+    rmark = ses.config.marker_radius_mm
+    err: dict[str, list[float]] = {}
+    for k in range(0, len(rec), 5):
+        raw, gt = rec.frame(k)
+        for site in ("HIP", "THI", "KNE", "TIB", "ANK"):
+            near = "R" if gt.pass_name == "out" else "L"
+            j = MARKER_INDEX[f"{near}_{site}"]
+            if gt.pass_name not in ("out", "back") or not gt.visible[j] or gt.merged[j]:
+                continue
+            c = gt.position[j]
+            ring = _ring_depth(raw.depth, gt.pixel[j], ses.camera.fx * rmark / c[2])
+            if np.isfinite(ring):
+                err.setdefault(site, []).append(ring - c[2] - rmark)
+    for site, e in err.items():
+        assert len(e) >= 5, (site, len(e))
+        assert abs(np.median(e)) < 15.0, (site, np.median(e))
+
+
+def test_truth_is_at_mid_exposure(ses) -> None:
+    """Ground truth = marker positions at the frame's time, not at a blur sample."""
+    rec = ses.recordings["walk-01"]
+    cfg = ses.config
+    assert cfg.blur_samples % 2 == 0  # the case where no blur sample is at mid-exposure
+    k = len(rec) // 3
+    _raw, gt = rec.frame(k)
+    t = float(rec.times.time_s[k])
+    exact = ses.renderer.to_cam(rec.motion.markers_caps(np.array([t]))[0][0])
+    np.testing.assert_allclose(gt.position, exact, atol=1e-9)
+    pose = rec.motion.pose(t, cfg.exposure_ms / 1000.0, cfg.blur_samples)
+    late = ses.renderer.to_cam(pose.spheres[cfg.blur_samples // 2])
+    assert np.nanmax(np.linalg.norm(late - gt.position, axis=1)) > 1.0  # feet move > 1 mm
+
+
+def test_overlapping_markers_are_flagged_merged(ses) -> None:
+    """Left and right PSI overlap in a side view: merged (or the far one occluded)."""
+    rec = ses.recordings["walk-01"]
+    li, ri = MARKER_INDEX["L_PSI"], MARKER_INDEX["R_PSI"]
+    n_both = n_merged = 0
+    for k in range(0, len(rec), 4):
+        _raw, gt = rec.frame(k)
+        assert len(gt.merged) == len(MARKER_NAMES)
+        assert not np.any(np.asarray(gt.merged) & ~gt.visible)
+        if gt.visible[li] and gt.visible[ri]:
+            n_both += 1
+            d = np.linalg.norm(gt.pixel[li] - gt.pixel[ri])
+            if d < 3.0:
+                assert gt.merged[li] and gt.merged[ri], d
+                n_merged += 1
+    assert n_merged > 0, n_both

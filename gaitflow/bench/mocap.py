@@ -226,7 +226,10 @@ def truth_lag_frames(cfg: Any) -> float:
     half a sample interval after mid-exposure (+1.5 ms with the defaults), while a blurred
     blob's centroid is the mid-exposure position. Scoring only; reported separately.
     """
-    if cfg.blur_samples % 2:
+    from gaitflow.sim import truth as sim_truth
+
+    if cfg.blur_samples % 2 or getattr(sim_truth, "TRUTH_AT_MID_EXPOSURE", False):
+        # Since the simulator fix, the truth is exactly at mid-exposure: no lag.
         return 0.0
     return 0.5 * cfg.exposure_ms / 1000.0 / cfg.blur_samples * cfg.camera.fps
 

@@ -545,8 +545,7 @@ def skin_patches(
                     # Same side: clearance in the sagittal plane, so the patch cannot
                     # cover the marker in a side view.
                     a, b, q = (
-                        x - (x * lateral).sum(axis=1, keepdims=True) * lateral
-                        for x in (a, b, pj)
+                        x - (x * lateral).sum(axis=1, keepdims=True) * lateral for x in (a, b, pj)
                     )
                 else:
                     q = pj

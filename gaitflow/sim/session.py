@@ -104,7 +104,9 @@ class Recording:
         cfg = ses.config
         # The truth is the marker position at mid-exposure, t itself (the blur samples
         # straddle it and an even count has no sample there).
-        pos_w = self.motion.markers_caps(np.array([t]))[0][0] if self.kind != "calibration" else None
+        pos_w = None
+        if self.kind != "calibration":
+            pos_w = self.motion.markers_caps(np.array([t]))[0][0]
         n = len(MARKER_NAMES)
         position = np.full((n, 3), np.nan)
         pixel = np.full((n, 2), np.nan)

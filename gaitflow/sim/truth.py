@@ -19,6 +19,10 @@ import numpy as np
 
 from gaitflow.markers import MARKER_INDEX
 
+# Ground-truth positions are the markers at the middle of the exposure, exactly (readers
+# that used to correct for a half-blur-sample lag can check this).
+TRUTH_AT_MID_EXPOSURE = True
+
 # A marker counts as visible when at least this fraction of its image footprint is seen.
 VISIBLE_FRACTION = 0.5
 
