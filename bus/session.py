@@ -65,7 +65,14 @@ class Handle:
 
 
 class Publisher:
-    """A declared Zenoh publisher on one key."""
+    """A declared Zenoh publisher on one key.
+
+    ``put`` has Zenoh copy the payload (into its own buffer or a shared-memory one) before
+    it returns, so a caller may reuse a ``bytearray`` for the next payload
+    (``copies_payload``; the in-memory FakeBus keeps references and does not say so).
+    """
+
+    copies_payload = True
 
     def __init__(self, bus: Bus, key: str, inner: Any) -> None:
         self.bus, self.key, self._inner = bus, key, inner

@@ -49,6 +49,7 @@ Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -161,6 +162,21 @@ class Roi:
     du: np.ndarray
     dv: np.ndarray
     level: float
+    # Flat (h*w,) float64 copies of the image and of each mosaic pixel's frame (u, v),
+    # made once per frame so that Alg. 1's iterations do no conversions.
+    flat_ir: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    flat_u: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    flat_v: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.flat_ir is None:
+            h, w = self.image.shape
+            t = self.tile.ravel()
+            tt = np.maximum(t, 0)
+            rr, cc = np.divmod(np.arange(h * w), max(w, 1))
+            object.__setattr__(self, "flat_ir", self.image.ravel().astype(np.float64))
+            object.__setattr__(self, "flat_u", (cc + self.du[tt]).astype(np.float64))
+            object.__setattr__(self, "flat_v", (rr + self.dv[tt]).astype(np.float64))
 
     def frame_uv(self, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Frame (u, v) of mosaic pixels (r, c)."""
@@ -312,23 +328,23 @@ def components(
     """
     img = roi.image
     if img.size == 0:
-        z = np.zeros(0)
-        return Components(
-            float(e), np.zeros((0, 2)), z, z, z, np.zeros(0, np.int32), np.zeros(0, np.int32),
-            np.zeros((0, 0), np.int32),
-        )  # fmt: skip
+        return _no_components(e)
     mask = (img > e).view(np.uint8)
-    nlab, labels = cv2.connectedComponents(mask, connectivity=connectivity, ltype=cv2.CV_32S)
-    r, c = np.nonzero(mask)
-    lab = labels[r, c]
-    val = img[r, c].astype(np.float64)
+    nlab, labels, stats, _ = cv2.connectedComponentsWithStats(
+        mask, connectivity=connectivity, ltype=cv2.CV_32S
+    )
+    if nlab == 1:  # nothing above e: skip the statistics
+        return _no_components(e, labels)
+    # Statistics over the foreground pixels only, from the per-frame float copies.
+    idx = np.flatnonzero(mask)
+    lab = labels.ravel()[idx]
+    val = roi.flat_ir[idx]
+    u = roi.flat_u[idx]
+    v = roi.flat_v[idx]
     wt = val - e
-    area = np.bincount(lab, minlength=nlab)
+    area = stats[:, cv2.CC_STAT_AREA]
     sw = np.bincount(lab, wt, minlength=nlab)
     sw[0] = 1.0
-    fu, fv = roi.frame_uv(r, c)
-    u = fu.astype(np.float64)
-    v = fv.astype(np.float64)
     pu = np.bincount(lab, wt * u, minlength=nlab) / sw
     pv = np.bincount(lab, wt * v, minlength=nlab) / sw
     dist = np.hypot(u - pu[lab], v - pv[lab])
@@ -362,6 +378,44 @@ def components(
         rejected=int(wide.sum()),
         box=box,
     )
+
+
+def _no_components(e: float, labels: np.ndarray | None = None) -> Components:
+    z = np.zeros(0)
+    lab = np.zeros((0, 0), np.int32) if labels is None else labels
+    return Components(
+        float(e), np.zeros((0, 2)), z, z, z, np.zeros(0, np.int32), np.zeros(0, np.int32), lab
+    )
+
+
+def count_components(
+    roi: Roi,
+    e: float,
+    min_area: int = 3,
+    connectivity: int = 8,
+    max_region_radius: float = np.inf,
+) -> int | None:
+    """Number of blobs :func:`components` would return at ``e``, from areas alone.
+
+    Returns None when a component's bounding box is wide enough that its ``r_r`` might
+    exceed ``max_region_radius`` (then only the full statistics can tell). ``r_r`` is at
+    most the box diagonal between pixel centres, so below that bound areas decide. Alg. 1
+    step 1 needs only the blob count at each history threshold.
+    """
+    img = roi.image
+    if img.size == 0:
+        return 0
+    mask = (img > e).view(np.uint8)
+    _, _, stats, _ = cv2.connectedComponentsWithStats(
+        mask, connectivity=connectivity, ltype=cv2.CV_32S
+    )
+    st = stats[1:]
+    big = st[:, cv2.CC_STAT_AREA] >= min_area
+    if np.isfinite(max_region_radius):
+        diag = np.hypot(st[:, cv2.CC_STAT_WIDTH] - 1, st[:, cv2.CC_STAT_HEIGHT] - 1)
+        if np.any(big & (diag > max_region_radius)):
+            return None
+    return int(np.count_nonzero(big))
 
 
 def refine_centroids(
@@ -444,6 +498,16 @@ def _wmean(x: np.ndarray, w: np.ndarray) -> float:
     return float(np.sum(x[ok] * w[ok]) / np.sum(w[ok]))
 
 
+def _wmean_list(x: list[float], w: list[float]) -> float:
+    """:func:`_wmean` of a few Python floats (the scan window) without numpy overhead."""
+    num = den = 0.0
+    for xi, wi in zip(x, w, strict=True):
+        if math.isfinite(xi) and math.isfinite(wi) and wi > 0:
+            num += xi * wi
+            den += wi
+    return num / den if den > 0 else float("nan")
+
+
 def adaptive_threshold(
     roi: Roi,
     w: float,
@@ -479,22 +543,30 @@ def adaptive_threshold(
             cache[e] = components(roi, e, min_area, connectivity, max_region_radius)
         return cache[e]
 
+    counts: dict[float, int] = {}
+
+    def count_at(e: float) -> int:
+        # Step 1 compares blob counts only: areas suffice unless a blob may be too wide.
+        e = float(min(max(e, roi.level), e_cap))
+        if e not in counts:
+            c = count_components(roi, e, min_area, connectivity, max_region_radius)
+            counts[e] = at(e).count if c is None else c
+        return counts[e]
+
     # Step 1: the history threshold whose blob count is closest to n (ties: most recent).
-    if history:
-        best = None
+    if history and len({h.e for h in history}) == 1:
+        cur = at(history[-1].e)  # one candidate: no count to compare
+    elif history:
+        best_e, best_f = 0.0, -1
         for h in reversed(history):
-            c = at(h.e)
-            if best is None or abs(n - c.count) < abs(n - best.count):
-                best = c
-        cur = best
+            f = count_at(h.e)
+            if best_f < 0 or abs(n - f) < abs(n - best_f):
+                best_e, best_f = h.e, f
+        cur = at(best_e)
     else:
         cur = at(w)
-    assert cur is not None
-    e_hist = np.array([h.e for h in history])
-    hk = np.array([h.k1 for h in history])
-    hu = np.array([h.u1 for h in history])
-    h1 = _wmean(hk, e_hist / w) if history else float("nan")
-    h2 = _wmean(hu, e_hist / w) if history else float("nan")
+    h1 = _wmean_list([h.k1 for h in history], [h.e / w for h in history])
+    h2 = _wmean_list([h.u1 for h in history], [h.e / w for h in history])
     it = 0
     while it < max_iterations:
         f = cur.count
@@ -600,9 +672,11 @@ def detect_frame(
         floor = e_static
     else:
         floor = min([w, *(h.e for h in history)])
-    bg = float(np.median(bm)) if bm.size else 0.0
-    e_low = bg + p["refine_fraction"] * max(floor - bg, 0.0)
-    level = min(e_low, floor) if p["refine"] else floor
+    e_low, level = floor, floor
+    if p["refine"]:
+        bg = float(np.median(bm)) if bm.size else 0.0
+        e_low = bg + p["refine_fraction"] * max(floor - bg, 0.0)
+        level = min(e_low, floor)
     roi = compact_roi(ir, level, p["block"], bm)
     if p["method"] == "static":
         comps = components(roi, e_static, p["min_area"], p["connectivity"], p["max_region_radius"])

@@ -10,6 +10,8 @@ in frame order, so both give identical results.
   input that has not arrived yet is held (bounded) and released, in order, when it does.
 - Trials the node does not take (``Node.trials``) are ignored.
 - Both buffers are bounded; what falls out is counted in ``dropped``.
+- A core sees one camera: the driver keeps one state per camera, made by ``init`` when
+  that camera's first frame arrives, so several cameras can share one stage process.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ class StageDriver:
         max_held: int = 1024,
     ) -> None:
         self.node, self.spec, self.params = node, spec, params
-        self.state = spec.init(params)
+        self.states: dict[str, Any] = {}
         self.max_join, self.max_held = max_join, max_held
         self._join: OrderedDict[FrameKey, dict[str, Message]] = OrderedDict()
         self._side: dict[tuple[str, str], Message] = {}
@@ -99,7 +101,8 @@ class StageDriver:
         for s in self.node.side_inputs:
             if (cam, s) in self._side:
                 full[s] = self._side[(cam, s)]
-        self.state, outputs = self.spec.step(self.state, full)
+        state = self.states[cam] if cam in self.states else self.spec.init(self.params)
+        self.states[cam], outputs = self.spec.step(state, full)
         self.processed += 1
         return list(outputs)
 
@@ -114,5 +117,8 @@ class StageDriver:
         self._join.clear()
         if self.spec.finish is None:
             return []
-        self.state, outputs = self.spec.finish(self.state)
-        return list(outputs)
+        out: list[Message] = []
+        for cam in sorted(self.states):
+            self.states[cam], outputs = self.spec.finish(self.states[cam])
+            out.extend(outputs)
+        return out

@@ -203,3 +203,23 @@ def load(path: str | Path | None = None) -> Graph:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{source}: not valid YAML: {exc}") from exc
     return parse(doc, source)
+
+
+def markdown_table(graph: Graph) -> str:
+    """The graph as a Markdown table, for the README (kept in sync by a test)."""
+    rows = [
+        "| stage | reads (joined per frame) | side inputs (trial kinds) | trials | writes | role |",
+        "|---|---|---|---|---|---|",
+    ]
+    for n in graph.order():
+        side = ", ".join(f"{s} ({'/'.join(k)})" for s, k in n.side_inputs.items()) or "-"
+        role = n.role + "".join(f", or {r}" for r in n.optional_roles)
+        rows.append(
+            f"| {n.name} | {', '.join(n.inputs) or '-'} | {side} | {'/'.join(n.trials)} "
+            f"| {', '.join(n.outputs)} | {role} |"
+        )
+    return "\n".join(rows)
+
+
+if __name__ == "__main__":
+    print(markdown_table(load()))

@@ -254,6 +254,8 @@ class LabelState:
     seen: np.ndarray | None = None
     frames: int = 0
     labelled: int = 0
+    foot: np.ndarray | None = None  # (3,) learned ANK-HEE, ANK-TOE, HEE-TOE, mm
+    foot_n: int = 0
 
 
 def init(params: dict[str, Any]) -> LabelState:
@@ -425,6 +427,7 @@ def label_frame(
     (state, assign) : assign is (20,) int, the blob index per marker, -1 = none.
     """
     p = st.params
+    geo = _learned(geo, st)
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
     dt = dt_frames / p["fps"]
@@ -563,7 +566,47 @@ def label_frame(
         last[i] = cur
         seen[i] = frame_idx
     st = replace(st, last=last, vel=vel, seen=seen, labelled=st.labelled + int((assign >= 0).sum()))
+    if st.direction:
+        st = _learn_foot(st, fm, assign, geo, "R" if st.direction > 0 else "L")
     return st, assign
+
+
+FOOT = (("ANK", "HEE"), ("ANK", "TOE"), ("HEE", "TOE"))
+FOOT_PRIOR = 5.0  # weight of the model's foot, in frames
+FOOT_RATE = 0.05  # slowest learning rate (exponential forgetting)
+
+
+def _learned(geo: Geometry, st: LabelState) -> Geometry:
+    """The geometry with the foot lengths learned on this trial so far."""
+    if st.foot is None:
+        return geo
+    dist = geo.dist.copy()
+    for (a, b), d in zip(FOOT, st.foot, strict=True):
+        ia, ib = SITES.index(a), SITES.index(b)
+        dist[ia, ib] = dist[ib, ia] = d
+    return replace(geo, dist=dist)
+
+
+def _learn_foot(
+    st: LabelState, fm: np.ndarray, assign: np.ndarray, geo: Geometry, near: str
+) -> LabelState:
+    """Refine the foot triangle from a frame with the near ANK, HEE and TOE all labelled.
+
+    The static pose often gives no foot (heel and ankle merge into one blob there, and the
+    template's foot may be 20-30 % off the subject's); walking frames separate them. Only
+    labels that passed every gate teach, and an observation more than 25 % off the current
+    length is ignored, so a wrong frame cannot drag the model far.
+    """
+    idx = [MARKER_INDEX[f"{near}_{s}"] for s in ("ANK", "HEE", "TOE")]
+    if (assign[idx] < 0).any():
+        return st
+    q = {s: fm[assign[i], MODE_OF[i]] for s, i in zip(("ANK", "HEE", "TOE"), idx, strict=True)}
+    cur = np.array([geo.d(a, b) for a, b in FOOT])
+    obs = np.array([np.hypot(*(q[a] - q[b])[[0, 2]]) for a, b in FOOT])
+    if not (np.isfinite(obs).all() and (np.abs(obs / cur - 1.0) < 0.25).all()):
+        return st
+    rate = max(FOOT_RATE, 1.0 / (FOOT_PRIOR + st.foot_n + 1))
+    return replace(st, foot=cur + rate * (obs - cur), foot_n=st.foot_n + 1)
 
 
 def _nearest_shoulder(top: np.ndarray, band: np.ndarray, x: np.ndarray, H: float) -> int:
@@ -740,6 +783,11 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         for a, b, d0, loose in pairs:
             both = present[:, a] & present[:, b]
             cost[both] += _rigid(pts[both, a], pts[both, b], d0, loose)
+        # One foot's markers lie at about one depth (silhouette depth errors of tens of mm
+        # allowed): the far foot is ~100-200 mm deeper.
+        for a, b in ((1, 2), (1, 3), (2, 3), (0, 1)):
+            both = present[:, a] & present[:, b]
+            cost[both] += ((pts[both, a, 1] - pts[both, b, 1]) / 80.0) ** 2
         # The tibia wand: somewhere on the lower shank, side-independent bounds.
         shank = geo.d("KNE", "ANK")
         both = present[:, 0] & present[:, 1]
@@ -802,9 +850,16 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             r, j = np.unravel_index(int(np.argmin(total)), total.shape)
             m = order[r]
             tf, tp = T[m], T2[j]
-            keep = _unambiguous(cost, T, m, K, fr.ambiguity)
+            # Ambiguity over the joint hypotheses: a near label whose blob could as well be
+            # the far foot's is judged with the far foot's completion counted.
+            keep = _unambiguous(total.min(axis=1), T[order], int(r), K, fr.ambiguity)
+            # A lone foot marker (the other two of ANK, HEE, TOE missing) has no foot
+            # geometry behind it: only a fresh track may name it.
+            lone_foot = int((tf[1:] < K).sum()) == 1
             for k, i in enumerate(foot_idx):
-                if keep[k]:
+                if keep[k] and tf[k] < K:
+                    if k > 0 and lone_foot and not (fr.tracked[i] and fr.age[i] == 1):
+                        continue
                     chosen[i] = int(tf[k])
             keep2 = _unambiguous(total[r], T2, j, K, fr.ambiguity)
             # A lone far-foot blob is heel or toe only if last frame's track says which.
@@ -872,6 +927,19 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         c3[k0] += _rigid(p3[k0, 0], hip[None], thigh)
         k1 = pr[:, 1]
         c3[k1] += _interval(p3[k1, 1], hip[None], 0.1 * thigh, 0.9 * thigh)
+    # Near or far leg: depth relative to the near leg's labelled markers (the standing
+    # offsets from the shoulder carry the shoulder's depth error and the trunk's rotation).
+    ref = [
+        fr.pos(MARKER_INDEX[f"{near}_{s}"])[fr.assign[MARKER_INDEX[f"{near}_{s}"]]]
+        for s in ("HIP", "TIB", "ANK")
+        if fr.assign[MARKER_INDEX[f"{near}_{s}"]] >= 0
+    ]
+    if ref:
+        ref_e = float(np.mean([r[1] for r in ref]))
+        for k in (0, 1):
+            c3[pr[:, k]] += ((p3[pr[:, k], k, 1] - ref_e) / 60.0) ** 2
+        for k in (2, 3):
+            c3[pr[:, k] & (p3[:, k, 1] < ref_e + 50.0)] = np.inf
     kne_h = geo.rel_sho("near", "KNE")[2]
     for k in (0, 1):
         c3[pr[:, k] & ~(p3[:, k, 2] > 0.6 * kne_h)] = np.inf

@@ -239,8 +239,10 @@ def _layer_bounds(
     """R2-R4 for many rows at once, on sorted, inf-padded rows ``zs`` (N, M) holding ``n``
     valid values each.
 
-    Walks the greedy W-slabs of every row together (one ``searchsorted`` per pass over the
-    flattened rows, which stay sorted once each row is offset by a large constant).
+    One ``searchsorted`` over the flattened rows (offset so that they stay sorted) gives,
+    for every value, where the W-slab starting at it ends; the greedy slab walk of each row
+    is then a few pointer jumps, done on Python lists because a row has only a handful of
+    slabs (a numpy pass per slab cost more in call overhead than the whole walk).
 
     Returns
     -------
@@ -249,29 +251,34 @@ def _layer_bounds(
     (T1 of the bottom mode); NaN where a row has no significant slab.
     """
     N, M = zs.shape
-    rows = np.arange(N)
-    finite = np.where(np.isfinite(zs), zs, 0.0)
-    big = float(finite.max(initial=0.0)) + 2.0 * W + 1.0
-    flat = (np.where(np.isfinite(zs), zs, big - W * 0.5) + rows[:, None] * 2.0 * big).ravel()
-    base = rows * M
-    i = np.zeros(N, dtype=np.intp)
-    near = np.full(N, np.nan)
-    far = np.full(N, np.nan)
-    active = n > 0
-    for _ in range(M + 1):  # every pass consumes at least one value of each active row
-        if not active.any():
-            break
-        s = zs[rows, np.minimum(i, M - 1)]
-        j = np.searchsorted(flat, s + W + rows * 2.0 * big, side="left") - base
-        j = np.minimum(np.maximum(j, i + 1), n)
-        sig = active & (j - i >= min_slab)
-        first = sig & np.isnan(near)
-        near = np.where(first, s, near)
-        within = sig & (s <= near + reach)
-        far = np.where(within, zs[rows, np.maximum(j - 1, 0)], far)
-        i = np.where(active, j, i)
-        active &= (i < n) & ~(np.isfinite(near) & (zs[rows, np.minimum(i, M - 1)] > near + reach))
-    return near, far
+    near = [math.nan] * N
+    far = [math.nan] * N
+    if N == 0 or M == 0:
+        return np.array(near), np.array(far)
+    fin = np.isfinite(zs)
+    big = float(np.max(zs, where=fin, initial=0.0)) + 2.0 * W + 1.0
+    off = (np.arange(N) * (2.0 * big))[:, None]
+    flat = (np.where(fin, zs, big - W * 0.5) + off).ravel()
+    ends = np.searchsorted(flat, flat + W, side="left").tolist()
+    vals = flat.tolist()
+    for row, cnt in enumerate(n.tolist()):
+        base = row * M
+        o = row * 2.0 * big
+        i = 0
+        nr = math.nan
+        while i < cnt:
+            s = vals[base + i]
+            j = min(max(ends[base + i] - base, i + 1), cnt)
+            if j - i >= min_slab:
+                if nr != nr:  # first significant slab
+                    nr = s
+                if s <= nr + reach:
+                    far[row] = vals[base + j - 1] - o
+            i = j
+            if nr == nr and i < cnt and vals[base + i] > nr + reach:
+                break
+        near[row] = nr - o if nr == nr else math.nan
+    return np.array(near), np.array(far)
 
 
 def _layers_batch(
@@ -279,7 +286,7 @@ def _layers_batch(
 ) -> np.ndarray:
     """R5-R8 for J jobs at once. z, dist (J, M) with NaN/inf where not a pixel; T0 (J,)
     (NaN = no layer), r (J,) region radii, nv (J,) valid pixel counts. Returns (J,) mm."""
-    D0, D1, D2, W = p["D0"], p["D1"], p["D2"], p["W"]
+    W = p["W"]
     J = z.shape[0]
     out = np.full(J, np.nan)
     ok = np.isfinite(T0)
@@ -290,8 +297,24 @@ def _layers_batch(
     jj, mm = np.nonzero(sel)
     if jj.size == 0:
         return out
-    zz = z[jj, mm]
-    dd = dist[jj, mm]
+    return _layers_core(jj, z[jj, mm], dist[jj, mm], T0f, r, nv, p, out)
+
+
+def _layers_core(
+    jj: np.ndarray,
+    zz: np.ndarray,
+    dd: np.ndarray,
+    T0f: np.ndarray,
+    r: np.ndarray,
+    nv: np.ndarray,
+    p: Mapping,
+    out: np.ndarray,
+) -> np.ndarray:
+    """R5-R8 on the selected pixels of J jobs: ``jj`` (P,) job of each pixel (a non-empty
+    selection), ``zz``/``dd`` (P,) its depth and distance, all in [T0f, T0f + W] of its
+    job. Fills ``out`` (J,) mm where a layer survives; returns it."""
+    D0, D1, D2, W = p["D0"], p["D1"], p["D2"], p["W"]
+    J = out.shape[0]
     nb = max(math.ceil(W / D1), 1)
     zb = np.minimum(((zz - T0f[jj]) / D1).astype(np.intp), nb - 1)
     counts = np.bincount(jj * nb + zb, minlength=J * nb).reshape(J, nb)
@@ -343,6 +366,17 @@ def locate_depths(
     ok = np.isfinite(centroid).all(axis=1) & np.isfinite(region_radius)
     if not ok.any():
         return out
+    if not p["top_half"]:
+        idx = np.flatnonzero(ok)
+        margin = np.full(idx.size, p["D0"])
+        z, res = _ragged(depth, centroid[idx], region_radius[idx], margin, p)
+        few = res < 3  # R1: widen the margin once by D0
+        if few.any():
+            z2, _ = _ragged(depth, centroid[idx[few]], region_radius[idx[few]], margin[few] * 2, p)
+            z[few] = z2
+        out[idx] = z
+        return out
+    # top_half: padded windows (its own pixel subset per blob).
     # Windows are padded to the largest of a batch, so blobs go in batches of similar size:
     # one wide blob (a lamp, a merged pair) must not make every window wide.
     half = np.ceil(region_radius + p["D0"])
@@ -360,6 +394,113 @@ def locate_depths(
     return out
 
 
+def _ragged(
+    depth: np.ndarray, cen: np.ndarray, r: np.ndarray, margin: np.ndarray, p: Mapping
+) -> tuple[np.ndarray, np.ndarray]:
+    """Alg. 3 (normal and bottom modes; top = normal) for n blobs in one pass.
+
+    The windows' valid pixels are gathered into one flat array, sorted by (blob, depth),
+    so every blob costs only its own pixels and a frame costs one pass whatever its blob
+    sizes (padded windows cost a pass per size class and the padding of the largest).
+    Same result as :func:`locate_depth` per blob. Returns ((n, 3) z, (n,) valid px).
+    """
+    H, Wd = depth.shape
+    n = cen.shape[0]
+    W, maxd = p["W"], p["max_depth"]
+    half = np.ceil(r + margin).astype(np.intp)
+    cu = np.rint(cen[:, 0]).astype(np.intp)
+    cq = np.rint(cen[:, 1]).astype(np.intp)
+    r0 = np.maximum(cq - half, 0)
+    c0 = np.maximum(cu - half, 0)
+    hgt = np.maximum(np.minimum(cq + half + 1, H) - r0, 0)
+    wid = np.maximum(np.minimum(cu + half + 1, Wd) - c0, 0)
+    size = hgt * wid
+    out = np.full((n, 3), np.nan)
+    total = int(size.sum())
+    if total == 0:
+        return out, np.zeros(n, np.intp)
+    job = np.repeat(np.arange(n), size)
+    k = np.arange(total) - np.repeat(np.cumsum(size) - size, size)
+    rr, cc = np.divmod(k, wid[job])
+    rows = r0[job] + rr
+    cols = c0[job] + cc
+    vals = depth[rows, cols]
+    keep = np.flatnonzero((vals > 0) & (vals <= maxd))
+    job, rows, cols = job[keep], rows[keep], cols[keep]
+    z = vals[keep].astype(np.float64)
+    nvalid = np.bincount(job, minlength=n)
+    if z.size == 0:
+        return out, nvalid
+    # One sort for all blobs: blob b's depths are offset by b * 2 * big, so the flat array
+    # is sorted by blob, then depth, and a W-window never reaches the next blob's values.
+    big = float(z.max()) + 2.0 * W + 1.0
+    off = np.arange(n) * (2.0 * big)
+    key = z + off[job]
+    # Ties need no stable order: depths are integers, so every sum below is exact.
+    order = np.argsort(key)
+    flat = key[order]
+    dist = np.hypot(cols - cen[job, 0], rows - cen[job, 1])[order]
+    start = np.cumsum(nvalid) - nvalid
+    near, far = _walk(flat, start, nvalid, off, W, p["min_slab"], p["bottom_reach"])
+    t0_bottom = far - W
+    need_bot = ~(t0_bottom == near) & np.isfinite(t0_bottom)
+    ib = np.flatnonzero(need_bot)
+    jobs = np.concatenate([np.arange(n), ib])
+    T0 = np.concatenate([near, t0_bottom[ib]])
+    good = np.isfinite(T0)
+    T0f = np.where(good, T0, 0.0)
+    lo = np.searchsorted(flat, T0f + off[jobs], side="left")
+    hi = np.searchsorted(flat, T0f + W + off[jobs], side="right")
+    lens = np.where(good, hi - lo, 0)
+    J = jobs.size
+    zs = np.full(J, np.nan)
+    if lens.sum() > 0:
+        jj = np.repeat(np.arange(J), lens)
+        pos = np.arange(jj.size) - np.repeat(np.cumsum(lens) - lens, lens) + lo[jj]
+        zz = flat[pos] - off[jobs[jj]]
+        nv = nvalid[jobs].astype(np.float64)
+        zs = _layers_core(jj, zz, dist[pos], T0f, r[jobs], nv, p, zs)
+    out[:] = zs[:n, None]
+    out[ib, 2] = zs[n:]
+    return out, nvalid
+
+
+def _walk(
+    flat: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    off: np.ndarray,
+    W: float,
+    min_slab: int,
+    reach: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """R2-R4 on the sorted, blob-offset depths of :func:`_ragged` (segment b is
+    ``flat[start[b]:start[b] + count[b]]``, offset by ``off[b]``). Same walk and result as
+    :func:`_layer_bounds`: (near, far) per blob, NaN where no slab is significant."""
+    n = start.size
+    near = [math.nan] * n
+    far = [math.nan] * n
+    ends = np.searchsorted(flat, flat + W, side="left").tolist()
+    vals = flat.tolist()
+    segs = zip(start.tolist(), count.tolist(), off.tolist(), strict=True)
+    for b, (base, cnt, o) in enumerate(segs):
+        i = 0
+        nr = math.nan
+        while i < cnt:
+            s = vals[base + i]
+            j = min(max(ends[base + i] - base, i + 1), cnt)
+            if j - i >= min_slab:
+                if nr != nr:  # first significant slab
+                    nr = s
+                if s <= nr + reach:
+                    far[b] = vals[base + j - 1] - o
+            i = j
+            if nr == nr and i < cnt and vals[base + i] > nr + reach:
+                break
+        near[b] = nr - o if nr == nr else math.nan
+    return np.array(near), np.array(far)
+
+
 def _batch(
     depth: np.ndarray, cen: np.ndarray, r: np.ndarray, margin: np.ndarray, p: Mapping
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -370,23 +511,22 @@ def _batch(
     hm = int(half.max())
     cu = np.rint(cen[:, 0]).astype(np.intp)
     cq = np.rint(cen[:, 1]).astype(np.intp)
-    # (n, S, S) windows gathered through a strided view of the image (no index arrays);
-    # a window is shifted inward at the image border and masked to the blob's own box.
+    # (n, S, S) windows gathered by one broadcast fancy index; a window is shifted inward
+    # at the image border and masked to the blob's own box.
     S = 2 * hm + 1
     if H < S or Wd < S:  # image smaller than a window: pad once, never in practice
         depth = np.pad(depth, ((0, max(S - H, 0)), (0, max(S - Wd, 0))))
     Hp, Wp = depth.shape
     r0 = np.clip(cq - hm, 0, Hp - S)
     c0 = np.clip(cu - hm, 0, Wp - S)
-    view = np.lib.stride_tricks.sliding_window_view(depth, (S, S))
-    vals = view[r0, c0]  # (n, S, S)
     ar = np.arange(S)
     rows = r0[:, None, None] + ar[None, :, None]  # (n, S, 1)
     cols = c0[:, None, None] + ar[None, None, :]  # (n, 1, S)
-    inside = (np.abs(rows - cq[:, None, None]) <= half[:, None, None]) & (
-        np.abs(cols - cu[:, None, None]) <= half[:, None, None]
-    )
-    inside &= (rows < H) & (cols < Wd)
+    vals = depth[rows, cols]  # (n, S, S)
+    hh = half[:, None, None]
+    inside = (np.abs(rows - cq[:, None, None]) <= hh) & (np.abs(cols - cu[:, None, None]) <= hh)
+    if Hp != H or Wp != Wd:
+        inside &= (rows < H) & (cols < Wd)
     valid = inside & (vals > 0) & (vals <= p["max_depth"])
     S2 = S * S
     valid = valid.reshape(n, S2)
@@ -403,11 +543,16 @@ def _batch(
         use_upper = np.zeros(n, dtype=bool)
         nt = nvalid
     # Both pixel sets sorted per row; dist follows the depth order.
+    # Flat gathers: take_along_axis costs more in call overhead on these small arrays. The
+    # sorted rows are cut to the longest valid run (the rest is inf padding).
     oa = np.argsort(zf, axis=1, kind="stable")
-    za, da = np.take_along_axis(zf, oa, 1), np.take_along_axis(dist, oa, 1)
+    mlen = max(int(nvalid.max()), 1)
+    flat_idx = oa[:, :mlen] + (np.arange(n) * S2)[:, None]
+    za, da = zf.ravel()[flat_idx], dist.ravel()[flat_idx]
     if p["top_half"]:
         ot = np.argsort(zt, axis=1, kind="stable")
-        zt, dt = np.take_along_axis(zt, ot, 1), np.take_along_axis(dist, ot, 1)
+        zt = np.take_along_axis(zt, ot, 1)[:, :mlen]
+        dt = np.take_along_axis(dist, ot, 1)[:, :mlen]
     else:
         zt, dt = za, da
     na = nvalid
@@ -462,17 +607,16 @@ def locate_all(
     pos = np.full((n, 3, 3), np.nan)
     if n:
         xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
-        for m in range(3):
-            pos[:, m, 0] = xy[:, 0] * zs[:, m]
-            pos[:, m, 1] = xy[:, 1] * zs[:, m]
-            pos[:, m, 2] = zs[:, m]
+        ray = np.ones((n, 1, 3))
+        ray[:, 0, :2] = xy
+        pos = ray * zs[:, :, None]  # [blob, mode, xyz]: (x', y', 1) * Z
         if diameter is None:
             diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
         if params["surface_offset"] and diameter > 0:
-            off = 0.5 * diameter
-            norm = np.linalg.norm(pos, axis=2, keepdims=True)
+            # |pos| = Z |ray|: one norm per blob, shared by the modes.
+            norm = zs * np.sqrt(np.einsum("nij,nij->ni", ray, ray))
             with np.errstate(invalid="ignore", divide="ignore"):
-                pos = pos * np.clip(1.0 - off / norm, 0.0, None)
+                pos *= np.clip(1.0 - 0.5 * diameter / norm, 0.0, None)[:, :, None]
     return pos[:, :, 2].copy(), pos
 
 

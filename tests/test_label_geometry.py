@@ -1,0 +1,53 @@
+"""Label geometry: wand-marker constraints and the plausibility check of the static model."""
+
+from __future__ import annotations
+
+import numpy as np
+from gaitflow.schemas import SubjectModel
+from gaitflow.stages import label
+from gaitflow.stages.model import TEMPLATE_SHO_HEIGHT
+
+
+def _pt(f: float, h: float) -> np.ndarray:
+    return np.array([[f, 0.0, h]])
+
+
+def test_interval_cost_zero_inside_and_grows_outside() -> None:
+    a = _pt(0.0, 0.0)
+    inside = label._interval(a, _pt(0.0, 100.0), 50.0, 300.0)[0]
+    below = label._interval(a, _pt(0.0, 20.0), 50.0, 300.0)[0]
+    above = label._interval(a, _pt(0.0, 345.0), 50.0, 300.0)[0]
+    assert inside == 0.0
+    assert np.isclose(below, (30.0 / 15.0) ** 2)
+    assert np.isclose(above, (45.0 / 15.0) ** 2)
+
+
+def test_on_segment_cost_for_a_wand_on_and_off_the_shank() -> None:
+    kne, ank = _pt(0.0, 450.0), _pt(40.0, 80.0)
+    on = label._on_segment(kne, _pt(20.0, 265.0), ank)[0]  # halfway along the shank
+    off = label._on_segment(kne, _pt(120.0, 265.0), ank)[0]  # 100 mm in front of it
+    past = label._on_segment(kne, _pt(50.0, -10.0), ank)[0]  # below the ankle
+    assert on < 0.1
+    assert off > 10.0 and past > 10.0
+
+
+def test_implausible_static_segment_falls_back_to_the_template() -> None:
+    tpl = label.Geometry.from_model(None)
+    hdr = SubjectModel.make_header("cam0", "static", 0, 0, True)
+    # A static pose whose toe was taken for a blob 35 mm ahead of the ankle.
+    offs = {
+        "near_ANK": [100.0, 0.0, 85.0],
+        "near_HEE": [40.0, 0.0, 40.0],
+        "near_TOE": [135.0, 0.0, 80.0],
+    }
+    extra = {"sho_height_mm": TEMPLATE_SHO_HEIGHT, "offsets_from_shoulder": offs}
+    m = SubjectModel(
+        header=hdr,
+        reference=np.full((20, 3), np.nan),
+        distances=np.full((20, 20), np.nan),
+        extra=extra,
+    )
+    geo = label.Geometry.from_model(m)
+    assert np.isclose(geo.d("ANK", "TOE"), tpl.d("ANK", "TOE"))
+    # A plausible measured segment is kept.
+    assert np.isclose(geo.d("ANK", "HEE"), np.hypot(60.0, 45.0))
