@@ -140,6 +140,13 @@ PARAMS = ParamSet(
             low=1.0,
         ),
         Param("block", int, 8, "px", "block size of the region-of-interest search", low=2),
+        Param(
+            "split_merged",
+            bool,
+            False,
+            "-",
+            "split a blob shaped like two merged markers in two (departure, optional)",
+        ),
     ),
 )
 
@@ -470,6 +477,90 @@ def refine_centroids(
     return out
 
 
+def split_merged(
+    roi: Roi,
+    comps: Components,
+    area_ratio: float = 1.5,
+    area_max: float = 3.0,
+    elongation: float = 2.0,
+    separation: float = 2.0,
+    iterations: int = 5,
+) -> Components:
+    """Split blobs shaped like two merged markers (departure, optional ``split_merged``).
+
+    Two markers closer than their diameters in the image (left and right PSI seen side-on)
+    give one component and one centroid between them. A blob is split when, against the
+    frame's other blobs, its area is ``area_ratio``-``area_max`` times the median, its
+    weighted covariance has an eigenvalue ratio of at least ``elongation``, and a weighted
+    2-means along its principal axis gives two halves of at least ``min_area`` pixels whose
+    centroids are at least ``separation`` median marker radii apart. Each half gets its own
+    Alg. 2 statistics (weights ``P - e_d``). Needs at least 3 blobs for the medians.
+
+    Returns
+    -------
+    Components with the split blobs' first halves in place and second halves appended
+    (their ``ids`` are -1: they have no label of their own in ``labels``).
+    """
+    if comps.count < 3:
+        return comps
+    med_a = float(np.median(comps.area))
+    med_r = float(np.median(comps.marker_radius))
+    cand = np.flatnonzero((comps.area >= area_ratio * med_a) & (comps.area <= area_max * med_a))
+    if cand.size == 0:
+        return comps
+    labflat = comps.labels.ravel()
+    cen = comps.centroid.copy()
+    rm, rr = comps.marker_radius.copy(), comps.region_radius.copy()
+    k, area = comps.mean_ir.copy(), comps.area.copy()
+    extra: list[tuple] = []
+    e = comps.threshold
+    for i in cand.tolist():
+        idx = np.flatnonzero(labflat == comps.ids[i])
+        X = np.stack([roi.flat_u[idx], roi.flat_v[idx]], axis=1)
+        val = roi.flat_ir[idx]
+        wt = val - e
+        d = X - cen[i]
+        C = (d * wt[:, None]).T @ d / wt.sum()
+        ev, evec = np.linalg.eigh(C)
+        if ev[1] < elongation * max(ev[0], 1e-9):
+            continue
+        t = d @ evec[:, 1]
+        c = np.array([-math.sqrt(ev[1]), math.sqrt(ev[1])])
+        for _ in range(iterations):  # weighted 2-means on the principal-axis coordinate
+            g = np.abs(t[:, None] - c[None]).argmin(axis=1)
+            if g.min() == g.max():
+                break
+            c = np.array([np.sum(wt[g == h] * t[g == h]) / np.sum(wt[g == h]) for h in (0, 1)])
+        g = np.abs(t[:, None] - c[None]).argmin(axis=1)
+        halves = [g == 0, g == 1]
+        if min(int(h.sum()) for h in halves) < 3:
+            continue
+        stats = []
+        for h in halves:
+            wh = wt[h]
+            ch = (wh[:, None] * X[h]).sum(axis=0) / wh.sum()
+            dist = np.hypot(*(X[h] - ch).T)
+            stats.append((ch, float(np.sum(wh * dist) / wh.sum()), float(dist.max()),
+                          float(val[h].mean()), int(h.sum())))  # fmt: skip
+        if np.hypot(*(stats[0][0] - stats[1][0])) < separation * med_r:
+            continue
+        cen[i], rm[i], rr[i], k[i], area[i] = stats[0]
+        extra.append(stats[1])
+    if not extra:
+        return comps
+    return Components(
+        threshold=e,
+        centroid=np.vstack([cen, [x[0] for x in extra]]),
+        marker_radius=np.concatenate([rm, [x[1] for x in extra]]),
+        region_radius=np.concatenate([rr, [x[2] for x in extra]]),
+        mean_ir=np.concatenate([k, [x[3] for x in extra]]),
+        area=np.concatenate([area, [x[4] for x in extra]]).astype(np.int32),
+        ids=np.concatenate([comps.ids, np.full(len(extra), -1, np.int32)]),
+        labels=comps.labels,
+        rejected=comps.rejected,
+    )
+
+
 # --------------------------------------------------------------------------------------
 # Alg. 1: adaptive threshold
 
@@ -694,10 +785,17 @@ def detect_frame(
             p["max_region_radius"],
             max(p["max_threshold"], roi.level),
         )
+    # Alg. 1's history entry is of the blobs it settled on, before any split.
+    k1, u1 = _largest(comps)
     centroid = comps.centroid
     if p["refine"] and comps.count:
         centroid = refine_centroids(roi, comps, e_low, p["connectivity"])
-    k1, u1 = _largest(comps)
+    if p["split_merged"] and comps.count:
+        n0, before = comps.count, comps.centroid
+        comps = split_merged(roi, comps)
+        split = (comps.centroid[:n0] != before).any(axis=1)  # first halves of split blobs
+        centroid = np.vstack([np.where(split[:, None], comps.centroid[:n0], centroid),
+                              comps.centroid[n0:]])  # fmt: skip
     entry = HistoryEntry(comps.threshold, k1, u1)
     status = "ok"
     if roi.image.size == 0 or comps.count == 0:

@@ -594,8 +594,8 @@ def _learn_foot(
 
     The static pose often gives no foot (heel and ankle merge into one blob there, and the
     template's foot may be 20-30 % off the subject's); walking frames separate them. Only
-    labels that passed every gate teach, and an observation more than 25 % off the current
-    length is ignored, so a wrong frame cannot drag the model far.
+    labels that passed every gate teach, and an observation far off the current
+    length is ignored (40 %), so a wrong frame cannot drag the model far.
     """
     idx = [MARKER_INDEX[f"{near}_{s}"] for s in ("ANK", "HEE", "TOE")]
     if (assign[idx] < 0).any():
@@ -603,7 +603,7 @@ def _learn_foot(
     q = {s: fm[assign[i], MODE_OF[i]] for s, i in zip(("ANK", "HEE", "TOE"), idx, strict=True)}
     cur = np.array([geo.d(a, b) for a, b in FOOT])
     obs = np.array([np.hypot(*(q[a] - q[b])[[0, 2]]) for a, b in FOOT])
-    if not (np.isfinite(obs).all() and (np.abs(obs / cur - 1.0) < 0.25).all()):
+    if not (np.isfinite(obs).all() and (np.abs(obs / cur - 1.0) < 0.4).all()):
         return st
     rate = max(FOOT_RATE, 1.0 / (FOOT_PRIOR + st.foot_n + 1))
     return replace(st, foot=cur + rate * (obs - cur), foot_n=st.foot_n + 1)

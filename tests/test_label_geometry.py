@@ -7,6 +7,8 @@ from gaitflow.schemas import SubjectModel
 from gaitflow.stages import label
 from gaitflow.stages.model import TEMPLATE_SHO_HEIGHT
 
+from gaitflow.markers import MARKER_INDEX
+
 
 def _pt(f: float, h: float) -> np.ndarray:
     return np.array([[f, 0.0, h]])
@@ -51,3 +53,25 @@ def test_implausible_static_segment_falls_back_to_the_template() -> None:
     assert np.isclose(geo.d("ANK", "TOE"), tpl.d("ANK", "TOE"))
     # A plausible measured segment is kept.
     assert np.isclose(geo.d("ANK", "HEE"), np.hypot(60.0, 45.0))
+
+
+def test_foot_lengths_learned_from_walking_frames_and_outliers_ignored() -> None:
+    geo = label.Geometry.from_model(None)
+    st = label.init(label.PARAMS.resolve({}))
+    ia, ih, it = (MARKER_INDEX[f"R_{s}"] for s in ("ANK", "HEE", "TOE"))
+    assign = np.full(20, -1)
+    assign[[ia, ih, it]] = [0, 1, 2]
+    # A foot 20 % longer than the template's: ANK (0, 80), HEE (-45, 45), TOE heel + 1.2 L.
+    ht = 1.2 * geo.d("HEE", "TOE")
+    pts = np.array([[0.0, 0.0, 80.0], [-45.0, 0.0, 45.0], [ht - 45.0, 0.0, 45.0]])
+    fm = np.repeat(pts[:, None, :], 3, axis=1)
+    for _ in range(60):
+        st = label._learn_foot(st, fm, assign, label._learned(geo, st), "R")
+    learned = label._learned(geo, st)
+    assert abs(learned.d("HEE", "TOE") - ht) < 0.05 * ht
+    assert st.foot_n == 60
+    # A frame whose "toe" is twice as far (a wrong label) teaches nothing.
+    far = fm.copy()
+    far[2, :, 0] = 2.5 * ht
+    st2 = label._learn_foot(st, far, assign, learned, "R")
+    assert st2.foot_n == st.foot_n and np.allclose(st2.foot, st.foot)

@@ -20,7 +20,8 @@ Scores (per visible truth marker and frame; "visible" = in view and not occluded
 - **false blobs** per frame: blobs matched to no visible marker;
 - **ms/frame** per stage, p50 and p99: CPU time of the one thread running the stages
   (``time.thread_time``; OpenCV threads set to 1), so that time spent waiting for a core
-  on a shared machine is not counted; the wall time of all three stages is reported too.
+  on a shared machine is not counted; wall time (``time.perf_counter``) of detect, locate,
+  detect + locate and all three stages is reported too.
   Single runs; the machine yardstick printed below scales them.
 
 Variants (``--variants``) change the simulator, never the stage parameters: ``base``,
@@ -245,13 +246,15 @@ def mid_exposure_pixels(frames: list, lag: float) -> list[np.ndarray]:
     return list(pix - lag * np.nan_to_num(vel))
 
 
-def run_stages(frames: list, method: str, score: Score, gate: float, refine: bool = False) -> None:
+def run_stages(
+    frames: list, method: str, score: Score, gate: float, refine: bool = False, split: bool = False
+) -> None:
     """Run clean -> detect -> locate cores on rendered frames and score them."""
     from gaitflow.stages import clean, detect, locate
 
     specs = {
         "clean": (clean.SPEC, {}),
-        "detect": (detect.SPEC, {"method": method, "refine": refine}),
+        "detect": (detect.SPEC, {"method": method, "refine": refine, "split_merged": split}),
         "locate": (locate.SPEC, {}),
     }
     state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
@@ -289,14 +292,23 @@ def bench(
 ) -> dict[str, Any]:
     """Render, run and score; returns {variant: {method: figures}}."""
     cv2.setNumThreads(1)  # "on one core"
-    methods = ["adaptive", "static"] + (["adaptive-refine"] if refine_ablation else [])
+    methods = ["adaptive", "static"]
+    methods += ["adaptive-refine", "adaptive-split"] if refine_ablation else []
     results: dict[str, Any] = {}
     for var in variants:
         scores = {m: Score() for m in methods}
         for trial in trials:
             rendered = render_frames(trial, seed, var, frames, recording)
             for m in methods:
-                run_stages(rendered, m.split("-")[0], scores[m], gate, refine=m.endswith("-refine"))
+                base, _, extra = m.partition("-")
+                run_stages(
+                    rendered,
+                    base,
+                    scores[m],
+                    gate,
+                    refine=extra == "refine",
+                    split=extra == "split",
+                )
         results[var] = {m: summarise(s) for m, s in scores.items()}
     return results
 
@@ -472,7 +484,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variants", default="base", help=f"comma list of {list(VARIANTS)}")
     p.add_argument("--gate", type=float, default=4.0, help="matching gate, px")
     p.add_argument(
-        "--ablation", action="store_true", help="also run adaptive with the sub-pixel refinement"
+        "--ablation",
+        action="store_true",
+        help="also run adaptive with the sub-pixel refinement and with merged-blob splitting",
     )
     add_json_flag(p)
     p.set_defaults(func=_run)
