@@ -842,7 +842,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             if ne.size:
                 depth_near = float(np.mean(ne))
                 for k in range(2):
-                    cc[pres2[:, k] & (p2[:, k, 1] < depth_near + 20.0)] += 4.0
+                    cc[pres2[:, k] & (p2[:, k, 1] < depth_near + 20.0)] += 9.0
                 # An absorber must be clearly far-side: it only ever removes a blob.
                 cc[pres2[:, 2] & (p2[:, 2, 1] < depth_near + 50.0)] = np.inf
             total[r] = cost[m] + cc

@@ -218,3 +218,58 @@ def test_frame_with_300_blobs_is_bounded() -> None:
     assert out.status == "too-many"
     assert out.centroid.shape == (64, 2)  # max_blobs
     assert dt < 2.0
+
+
+# Optional splitting of blobs shaped like two merged markers (``split_merged``).
+
+
+def scene(pair_gap: float) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    """Four single markers and one pair ``pair_gap`` px apart (centre to centre)."""
+    img = frame(noise=10.0, seed=3)
+    singles = [(20.3, 20.6), (60.7, 25.2), (120.1, 30.4), (40.5, 90.9)]
+    for u, v in singles:
+        disc(img, u, v, 2.5, 60000.0)
+    pair = [(100.0, 80.0), (100.0 + pair_gap, 80.4)]
+    for u, v in pair:
+        disc(img, u, v, 2.5, 60000.0)
+    return u16(img), singles + pair
+
+
+def run(img: np.ndarray, split: bool) -> detect.Detection:
+    p = detect.PARAMS.resolve({"n": 6, "split_merged": split})
+    return detect.detect_frame(img, 12000.0, 2.5, (), p)
+
+
+def nearest(cen: np.ndarray, pts: list[tuple[float, float]], axis: int = 0) -> np.ndarray:
+    """Distance from each point to its nearest centroid (axis 0), or from each centroid to
+    its nearest point (axis 1)."""
+    t = np.array(pts)
+    return np.hypot(cen[:, None, 0] - t[None, :, 0], cen[:, None, 1] - t[None, :, 1]).min(axis)
+
+
+def test_merged_pair_is_split_into_two_blobs_near_each_marker() -> None:
+    img, truth = scene(4.2)
+    off = run(img, False)
+    assert off.blobs.count == 5  # the pair is one blob
+    on = run(img, True)
+    assert on.blobs.count == 6
+    assert on.centroid.shape == (6, 2)
+    err = nearest(on.centroid, truth)
+    assert err.max() < 0.6, err
+    # The single markers keep their Alg. 2 centroids exactly.
+    single_off = off.centroid[nearest(off.centroid, truth[:4], axis=1) < 0.5]
+    assert len(single_off) == 4
+    for c in single_off:
+        assert np.min(np.hypot(*(on.centroid - c).T)) == 0.0
+
+
+def test_separate_markers_are_not_split() -> None:
+    img, _ = scene(9.0)  # the pair does not touch: six round blobs
+    on = run(img, True)
+    off = run(img, False)
+    assert on.blobs.count == off.blobs.count == 6
+    np.testing.assert_array_equal(on.centroid, off.centroid)
+
+
+def test_split_is_off_by_default() -> None:
+    assert detect.PARAMS.resolve({})["split_merged"] is False

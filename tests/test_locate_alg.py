@@ -169,3 +169,21 @@ def test_marker_diameter_from_session_camera_json_unless_set() -> None:
     # A flat mapping of Camera fields is accepted as the intrinsics override too.
     st = locate.init(params(camera={"fx": 500.0, "fy": 500.0}))
     assert st.camera.fx == 500.0
+
+
+def test_one_pass_equals_per_blob_with_one_wide_blob() -> None:
+    # The flat one-pass Alg. 3 (no padding) against the per-blob reference, when a wide
+    # blob (a lamp, a streak) shares the frame with marker-sized ones.
+    rng = np.random.default_rng(5)
+    p = params()
+    h, w = 120, 160
+    d = rng.normal(2600, 15, (h, w))
+    d[:, 90:] = 3900.0
+    d[rng.random((h, w)) < 0.08] = 0
+    d = np.clip(d, 0, 65535).astype(np.uint16)
+    cen = np.array([[20.2, 30.7], [85.5, 60.1], [140.3, 10.9], [60.0, 100.4], [150.0, 115.0]])
+    rr = np.array([2.1, 28.5, 3.3, 1.2, 4.0])
+    batch = locate.locate_depths(d, cen, rr, p)
+    single = np.array([locate.locate_depth(d, c, r, p) for c, r in zip(cen, rr, strict=True)])
+    np.testing.assert_allclose(batch, single, atol=1e-6)
+    assert np.isfinite(batch).all()
