@@ -26,13 +26,18 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    the model's standing offsets from the shoulder, sagittal rigid distances, and the hard
    order PSI < HIP < ASI along the walking direction, HIP below both, far ASI deeper;
 5. lower body (steps 7-10): every assignment of the low blobs to the near foot (TIB, ANK,
-   HEE, TOE) is scored by the model's sagittal segment lengths (TIB-ANK, ANK-HEE, ANK-TOE,
-   HEE-TOE; TIB-HEE and TIB-TOE loosely), the triangle foot model (ANK inside triangle
-   TIB-TOE-HEE) and the tracks, under hard rules (toe half a foot ahead of the heel, tibia
-   above ankle, heel and toe not far above the ankle); the best ones are completed with the
-   far heel and toe (rigid foot, deeper than the near foot; a lone far blob only on last
-   frame's track), then the limb (THI, KNE: distances to HIP, TIB, ANK; far knee and thigh
-   absorb their blobs);
+   HEE, TOE) is scored by the foot's sagittal lengths (ANK-HEE, ANK-TOE, HEE-TOE: the
+   model's, refined online from walking frames, see ``_learn_foot``), one depth for the
+   foot, the wand bounds of TIB (side-independent, ``_interval``), the triangle foot model
+   (ANK inside triangle TIB-TOE-HEE) and the tracks, under hard rules (toe half a foot
+   ahead of the heel, tibia above ankle, heel and toe not far above the ankle); the best
+   ones are completed with the far heel, toe and tibia (the far tibia only absorbs its
+   blob; rigid foot, deeper than the near foot; a lone far blob only on last frame's
+   track); ambiguity is judged on the joint hypotheses; a lone near foot marker needs a
+   fresh track. Then the limb (KNE: thigh and shank lengths to HIP and ANK; THI and TIB
+   on their segments, ``_on_segment``; near knee and thigh at the near leg's depth, far
+   knee and thigh, deeper, absorb their blobs). Segment lengths more than 25 % off the
+   stature-scaled template fall back to it (a static labelling error);
 6. a label is left NaN rather than guessed when another blob fits it almost as well
    (``ambiguity``) or it breaks a track gate or a rigid distance: an occluded marker gives a
    gap, not a wrong label. Blobs left over (stray reflectors, far-side leg markers) stay
