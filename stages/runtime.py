@@ -14,7 +14,8 @@ Data path of a processing stage (:class:`StageRuntime`)::
 - **Bounded queue** with an explicit policy: ``block`` (back-pressure to Zenoh and, with
   congestion control BLOCK, to the publisher), ``drop-oldest``, or the default
   ``block-then-drop-oldest`` (block up to ``block_timeout_s``, then drop the oldest queued
-  message). Every drop is counted.
+  message). Every drop is counted. With ``block`` the bus callback runs the step itself
+  when nothing is queued (no thread hand-over per frame; see ``_try_inline``).
 - **Re-ordering** by frame index within a bounded window and with a timeout: frame
   indices have real gaps (a dropped frame, a replica that skipped one), so a missing index
   is waited for at most ``reorder_timeout_s`` or until ``reorder_window`` later frames are
@@ -250,7 +251,8 @@ class BoundedQueue:
                 self.dropped += 1
                 self.unfinished -= 1
             self._items.append(item)
-            self.unfinished += 1
+            if not force:  # the shutdown marker is not work: it is never marked done
+                self.unfinished += 1
             self._cond.notify_all()
             return dropped
 

@@ -2,8 +2,9 @@
 
 Each hop is a separate process connected to one ``gaitflow router`` on 127.0.0.1:
 
-- **ours**: ``gaitflow stage relayK`` processes (the full stage runtime: decode with the
-  schema class, bounded queue, re-order, driver, core, encode, publish), fed by a producer
+- **ours**: ``gaitflow stage relayK`` processes (the full stage runtime in its lossless
+  ``block`` policy: decode with the schema class, re-order, driver, core, encode, publish),
+  fed by a producer
   that encodes ``RawFrame`` messages and read by a consumer that decodes them;
 - **raw** (the floor): minimal Python Zenoh relays that subscribe, take the payload as bytes
   and put the same bytes on the next key; the producer puts pre-built bytes and the consumer
