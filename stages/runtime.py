@@ -58,7 +58,7 @@ from gaitflow.stages.graph import Node
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import start_http_server
 
-from gaitflow.errors import ConfigError, GaitflowError, SchemaError, StageError
+from gaitflow.errors import ConfigError, GaitflowError, InputError, SchemaError, StageError
 
 log = logging.getLogger("gaitflow.runtime")
 
@@ -669,6 +669,7 @@ class SourceRuntime:
 
     def _run(self) -> None:
         first: tuple[int, int] | None = None
+        trial: str | None = None
         try:
             for batch in self.spec.open(self.params):
                 if self._stop.is_set():
@@ -677,8 +678,11 @@ class SourceRuntime:
                     continue
                 if self.opt.rate == "1":
                     cap = batch[0].header.capture_ns
-                    if first is None:
+                    # Recordings of a session were captured minutes apart: pace within a
+                    # trial, and start the next one straight away.
+                    if first is None or batch[0].header.trial != trial:
                         first = (cap, time.monotonic_ns())
+                        trial = batch[0].header.trial
                     wait = (first[1] + (cap - first[0]) - time.monotonic_ns()) / 1e9
                     if wait > 0 and self._stop.wait(wait):
                         break
@@ -789,10 +793,11 @@ def serve(
         try:
             rt.stop()
         except StageError as exc:
-            # A crashed worker is a runtime failure (exit 1: the launcher restarts it), not
-            # a configuration error (exit 2: it does not).
             log.error("%s", exc)
-            return 1
+            # Bad input (a broken session folder or recording) will not mend by restarting:
+            # exit 2 like a configuration error. A crashed worker is a runtime failure
+            # (exit 1: the launcher restarts it).
+            return 2 if isinstance(exc.__cause__, InputError) else 1
         return 0
     finally:
         if server is not None:
