@@ -252,6 +252,7 @@ def summary_table(outcomes: Iterable[TrialOutcome], title: str = "gait summary")
                     d["stance_pct"],
                     d["swing_pct"],
                     d["knee_rom_deg"],
+                    int(d["cycles"]),
                 ]
             )
     cols = [
@@ -264,8 +265,13 @@ def summary_table(outcomes: Iterable[TrialOutcome], title: str = "gait summary")
         "stance %",
         "swing %",
         "knee ROM deg",
+        "knee cycles",
     ]
-    return format_table(title, cols, rows)
+    note = (
+        "knee ROM: mean over the gait cycles whose knee angle is known over >= 90 % of the "
+        "cycle ('knee cycles'); '-' = no such cycle"
+    )
+    return format_table(title, cols, rows) + "\n" + note
 
 
 def _param_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
