@@ -259,34 +259,13 @@ def _layer_bounds(
     (T1 of the bottom mode); NaN where a row has no significant slab.
     """
     N, M = zs.shape
-    near = [math.nan] * N
-    far = [math.nan] * N
     if N == 0 or M == 0:
-        return np.array(near), np.array(far)
+        return np.full(N, np.nan), np.full(N, np.nan)
     fin = np.isfinite(zs)
     big = float(np.max(zs, where=fin, initial=0.0)) + 2.0 * W + 1.0
-    off = (np.arange(N) * (2.0 * big))[:, None]
-    flat = (np.where(fin, zs, big - W * 0.5) + off).ravel()
-    ends = np.searchsorted(flat, flat + W, side="left").tolist()
-    vals = flat.tolist()
-    for row, cnt in enumerate(n.tolist()):
-        base = row * M
-        o = row * 2.0 * big
-        i = 0
-        nr = math.nan
-        while i < cnt:
-            s = vals[base + i]
-            j = min(max(ends[base + i] - base, i + 1), cnt)
-            if j - i >= min_slab:
-                if nr != nr:  # first significant slab
-                    nr = s
-                if s <= nr + reach:
-                    far[row] = vals[base + j - 1] - o
-            i = j
-            if nr == nr and i < cnt and vals[base + i] > nr + reach:
-                break
-        near[row] = nr - o if nr == nr else math.nan
-    return np.array(near), np.array(far)
+    off = np.arange(N) * (2.0 * big)
+    flat = (np.where(fin, zs, big - W * 0.5) + off[:, None]).ravel()
+    return _walk(flat, np.arange(N) * M, np.asarray(n), off, W, min_slab, reach)
 
 
 def _layers_batch(

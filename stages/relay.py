@@ -34,3 +34,25 @@ SPEC = StageSpec(
     step=step,
     doc="Pass-through: publishes its inputs unchanged (bus tests and benchmarks).",
 )
+
+
+def chain_yaml(site: str, hops: int, source_topic: str = "raw", last_replicas: int = 1) -> str:
+    """A pipeline description of ``hops`` relays in a chain, for tests and ``bench bus``.
+
+    Relay k reads ``raw`` under topic ``raw-{k-1}`` (the first one under ``source_topic``)
+    and publishes it under ``raw-{k}``; the last relay runs ``last_replicas`` ways.
+    """
+    lines = ["version: 1", f"site: {site}", "stages:"]
+    for k in range(1, hops + 1):
+        src = source_topic if k == 1 else f"raw-{k - 1}"
+        lines += [
+            f"  - name: relay{k}",
+            "    module: gaitflow.stages.relay",
+            "    inputs: [raw]",
+            f"    input_topics: {{raw: {src}}}",
+            "    outputs: [raw]",
+            f"    topics: {{raw: raw-{k}}}",
+        ]
+        if k == hops and last_replicas > 1:
+            lines.append(f"    replicas: {last_replicas}")
+    return "\n".join(lines) + "\n"

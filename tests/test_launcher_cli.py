@@ -12,24 +12,9 @@ from pathlib import Path
 
 import pytest
 from gaitflow.bus.router import local_endpoint
+from gaitflow.stages.relay import chain_yaml
 
-GRAPH = """\
-version: 1
-site: rtest
-stages:
-  - name: relay1
-    module: gaitflow.stages.relay
-    inputs: [raw]
-    outputs: [raw]
-    topics: {raw: raw-1}
-  - name: relay2
-    module: gaitflow.stages.relay
-    inputs: [raw]
-    input_topics: {raw: raw-1}
-    outputs: [raw]
-    topics: {raw: raw-2}
-    replicas: 2
-"""
+GRAPH = chain_yaml("rtest", 2, last_replicas=2)
 
 
 @pytest.mark.integration

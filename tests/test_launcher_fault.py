@@ -16,23 +16,9 @@ from gaitflow.bus.router import client_config, local_endpoint
 from gaitflow.schemas import RawFrame, decode
 from gaitflow.stages import graph as graph_mod
 from gaitflow.stages.launcher import Launcher
+from gaitflow.stages.relay import chain_yaml
 
-GRAPH = """\
-version: 1
-site: ftest
-stages:
-  - name: relay1
-    module: gaitflow.stages.relay
-    inputs: [raw]
-    outputs: [raw]
-    topics: {raw: raw-1}
-  - name: relay2
-    module: gaitflow.stages.relay
-    inputs: [raw]
-    input_topics: {raw: raw-1}
-    outputs: [raw]
-    topics: {raw: raw-2}
-"""
+GRAPH = chain_yaml("ftest", 2)
 
 
 def _scrape(url: str, name: str) -> float:

@@ -19,25 +19,11 @@ import pytest
 from gaitflow.bus import Bus
 from gaitflow.bus.router import client_config, local_endpoint, wait_port
 from gaitflow.schemas import RawFrame, decode
+from gaitflow.stages.relay import chain_yaml
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-GRAPH = """\
-version: 1
-site: itest
-stages:
-  - name: relay1
-    module: gaitflow.stages.relay
-    inputs: [raw]
-    outputs: [raw]
-    topics: {raw: raw-1}
-  - name: relay2
-    module: gaitflow.stages.relay
-    inputs: [raw]
-    input_topics: {raw: raw-1}
-    outputs: [raw]
-    topics: {raw: raw-2}
-"""
+GRAPH = chain_yaml("itest", 2)
 
 
 def _spawn(log: Path, *args: str) -> subprocess.Popen[bytes]:

@@ -38,24 +38,11 @@ from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.bus import Bus
 from gaitflow.bus.router import client_config, local_endpoint, wait_port
 from gaitflow.schemas import RawFrame, decode
+from gaitflow.stages.relay import chain_yaml
 
 SITE = "bench"
 GOAL_RATIO = 1.10
 GOAL_FPS_3HOPS = 300.0
-
-
-def _graph(hops: int) -> str:
-    lines = ["version: 1", f"site: {SITE}", "stages:"]
-    for k in range(1, hops + 1):
-        lines += [
-            f"  - name: relay{k}",
-            "    module: gaitflow.stages.relay",
-            "    inputs: [raw]",
-            f"    input_topics: {{raw: raw-{k - 1}}}",
-            "    outputs: [raw]",
-            f"    topics: {{raw: raw-{k}}}",
-        ]
-    return "\n".join(lines) + "\n"
 
 
 def _spawn(argv: list[str], log: Path) -> subprocess.Popen[bytes]:
@@ -237,7 +224,7 @@ def run_bench(
             try:
                 for h in hops:
                     graph = d / f"graph-{h}.yaml"
-                    graph.write_text(_graph(h))
+                    graph.write_text(chain_yaml(SITE, h, source_topic="raw-0"))
                     argv = [
                         [py, "-m", "gaitflow.cli", "stage", f"relay{k}", "--graph",
                          str(graph), "--config", str(cfg), "--connect", ep]
