@@ -174,6 +174,31 @@ def resample(t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0) -> tuple[np.n
     return tq, (xq[:, 0] if flat else xq)
 
 
+def _window_sums(
+    t: np.ndarray, x: np.ndarray, window_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sums over the seen samples within ``window_s`` / 2 of each time, from prefix sums
+    (O(N)): count n, sum t, sum x, sum t^2, sum t*x, with t counted from t[0].
+
+    t : (N,) s, increasing; x : (N,) with NaN = missing. Returns the five (N,) sums and the
+    (N,) centred times ``tc``.
+    """
+    ok = np.isfinite(x)
+    tc = t - t[0]
+    w = ok.astype(float)
+    xv = np.where(ok, x, 0.0)
+    tw = np.where(ok, tc, 0.0)
+
+    def csum(a: np.ndarray) -> np.ndarray:
+        return np.concatenate(([0.0], np.cumsum(a)))
+
+    lo = np.searchsorted(t, t - window_s / 2 - 1e-9, side="left")
+    hi = np.searchsorted(t, t + window_s / 2 + 1e-9, side="right")
+    sums = [csum(a) for a in (w, tw, xv, tw * tc, tw * xv)]
+    n0, st, sx, stt, stx = (c[hi] - c[lo] for c in sums)
+    return n0, st, sx, stt, stx, tc
+
+
 def local_linear(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
     """A least-squares line through the seen samples within ``window_s`` / 2 of each time,
     evaluated there (a NaN-aware, first-order Savitzky-Golay smoother on timestamps).
@@ -186,20 +211,7 @@ def local_linear(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
     ok = np.isfinite(x)
     if len(t) == 0:
         return np.zeros(0)
-    tc = t - t[0]
-    w = ok.astype(float)
-    xv = np.where(ok, x, 0.0)
-    tw = np.where(ok, tc, 0.0)
-
-    def csum(a: np.ndarray) -> np.ndarray:
-        return np.concatenate(([0.0], np.cumsum(a)))
-
-    S0, St, Sx, Stt, Stx = csum(w), csum(tw), csum(xv), csum(tw * tc), csum(tw * xv)
-    lo = np.searchsorted(t, t - window_s / 2 - 1e-9, side="left")
-    hi = np.searchsorted(t, t + window_s / 2 + 1e-9, side="right")
-    n0 = S0[hi] - S0[lo]
-    st, sx = St[hi] - St[lo], Sx[hi] - Sx[lo]
-    stt, stx = Stt[hi] - Stt[lo], Stx[hi] - Stx[lo]
+    n0, st, sx, stt, stx, tc = _window_sums(t, x, window_s)
     den = n0 * stt - st * st
     with np.errstate(invalid="ignore", divide="ignore"):
         slope = np.where(den > 1e-12, (n0 * stx - st * sx) / den, 0.0)
@@ -1023,21 +1035,7 @@ def split_passes(
     if n < 3:
         return []
     # least-squares slope over a centred time window, from prefix sums (O(N))
-    ok = np.isfinite(prog)
-    tc = t - t[0]
-    x = np.where(ok, prog, 0.0)
-    w = ok.astype(float)
-    tw = np.where(ok, tc, 0.0)
-
-    def csum(a: np.ndarray) -> np.ndarray:
-        return np.concatenate(([0.0], np.cumsum(a)))
-
-    S0, St, Sx, Stt, Stx = csum(w), csum(tw), csum(x), csum(tw * tc), csum(tw * x)
-    lo = np.searchsorted(t, t - window_s / 2 - 1e-9, side="left")
-    hi = np.searchsorted(t, t + window_s / 2 + 1e-9, side="right")
-    n0 = S0[hi] - S0[lo]
-    st, sx = St[hi] - St[lo], Sx[hi] - Sx[lo]
-    stt, stx = Stt[hi] - Stt[lo], Stx[hi] - Stx[lo]
+    n0, st, sx, stt, stx, _ = _window_sums(t, prog, window_s)
     den = n0 * stt - st * st
     with np.errstate(invalid="ignore", divide="ignore"):
         v = (n0 * stx - st * sx) / den
