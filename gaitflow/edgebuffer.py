@@ -20,7 +20,8 @@ the queue, so:
 A vanished token (router gone, link cut, lease expired) marks the link down. Frames sent
 in the last ``resend_margin_s`` before the drop was noticed may have died in flight, so
 the sender rewinds to them: the server drops the duplicates with :class:`Deduper`, keyed
-by (camera, trial, frame, stream) from the message header.
+by (camera, trial, frame, stream, capture time) from the message header (the server role's
+stages do it on their inputs: ``runtime.dedupe`` in the generated stage config).
 
 Times: ``time.monotonic()`` seconds for link bookkeeping; payload headers carry ns.
 """
@@ -45,7 +46,7 @@ from gaitflow.bus.config import BusConfig
 from gaitflow.bus.keys import stream_key
 from gaitflow.errors import BusError, ConfigError, GaitflowError, SchemaError
 from gaitflow.recording import McapWriter, iter_messages
-from gaitflow.schemas import peek_header
+from gaitflow.schemas import Header, peek_header
 
 log = logging.getLogger("gaitflow.edgebuffer")
 
@@ -225,28 +226,45 @@ class Ring:
 
 
 class Deduper:
-    """Drop payloads already seen, by (camera, trial, frame, stream) of their header.
+    """Drop payloads already seen, by (camera, trial, frame, stream, capture time) of their
+    header.
 
-    The uplink may resend frames around a link drop; the server keeps the first copy.
-    A payload whose header cannot be read is passed on (and counted): the consumer decides.
+    The uplink may resend frames around a link drop; the server keeps the first copy. A
+    resend is the same payload, so its capture time is the same; the capture time is part of
+    the identity because trial names and frame indices repeat (the next session's
+    ``walk-01`` frame 0 is not a duplicate of this one's). A payload whose header cannot be
+    read is passed on (and counted): the consumer decides.
     """
 
     def __init__(self, window: int = 1 << 16) -> None:
-        self._seen: set[tuple[str, str, int, str]] = set()
-        self._order: deque[tuple[str, str, int, str]] = deque()
+        self._seen: set[tuple[str, str, int, str, int]] = set()
+        self._order: deque[tuple[str, str, int, str, int]] = deque()
         self.window = int(window)
         self.duplicates = 0
         self.unreadable = 0
         self._lock = threading.Lock()
 
     def first(self, payload: bytes) -> bool:
-        """True the first time a (camera, trial, frame, stream) is seen."""
+        """True the first time a (camera, trial, frame, stream, capture time) is seen."""
         try:
             h = peek_header(payload)
-            ident = (str(h["camera"]), str(h["trial"]), int(h["frame"]), str(h["schema"]))
+            ident = (
+                str(h["camera"]),
+                str(h["trial"]),
+                int(h["frame"]),
+                str(h["schema"]),
+                int(h["capture_ns"]),
+            )
         except (SchemaError, KeyError, TypeError, ValueError):
             self.unreadable += 1
             return True
+        return self._first(ident)
+
+    def first_header(self, h: Header) -> bool:
+        """:meth:`first` for a decoded message's header."""
+        return self._first((h.camera, h.trial, int(h.frame), h.schema, int(h.capture_ns)))
+
+    def _first(self, ident: tuple[str, str, int, str, int]) -> bool:
         with self._lock:
             if ident in self._seen:
                 self.duplicates += 1
@@ -618,7 +636,7 @@ class StageWatcher:
     alerts as well as one that went away.
     """
 
-    def __init__(self, bus: Any, site: str, expected: list[tuple[str, int]]) -> None:
+    def __init__(self, bus: Any, site: str, expected: list[tuple[str, int | str]]) -> None:
         from prometheus_client import CollectorRegistry, Gauge
 
         self.registry = CollectorRegistry()
@@ -654,9 +672,9 @@ def run_watch(path: str | Path, port: int | None = None) -> int:
     w = role.get("watch") or {}
     host = str(w.get("metrics_host", "127.0.0.1"))
     port = int(w.get("metrics_port", 9100) if port is None else port)
-    expected = [
-        (s["name"], i) for s in role.get("stages", []) for i in range(s["runtime"]["replicas"])
-    ]
+    from gaitflow.deployment import role_plan
+
+    expected: list[tuple[str, int | str]] = [(w.stage, w.worker_id) for w in role_plan(role)]
     stop = threading.Event()
     old = _wait_signal(stop)
     bus = Bus(BusConfig.from_mapping(role["bus"], "bus"))

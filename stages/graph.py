@@ -5,6 +5,11 @@ description. A node names its stage module (which exposes ``SPEC``), the streams
 per frame (``inputs``), the latest-value streams it needs (``side_inputs``, each with the
 trial kinds that need it), its ``outputs``, its machine ``role`` and ``replicas``.
 
+``per_camera: true`` marks a stateful per-frame stage that scales out by camera: where a
+machine serves several cameras (the server role), it runs one worker process per camera,
+so one camera's heavy step (a trial's summary, a re-initialised track) never delays
+another camera's frames. ``replicas`` (frame index mod N) is for stateless stages only.
+
 Optional ``topics`` / ``input_topics`` map a stream to the key segment a node publishes /
 reads it under (default: the stream name). They let test and benchmark graphs chain
 pass-through stages (relay -> relay) without a stream having two producers.
@@ -40,6 +45,7 @@ class Node:
     trials: tuple[str, ...] = TRIAL_KINDS
     role: str = "server"
     replicas: int = 1
+    per_camera: bool = False
     optional_roles: tuple[str, ...] = ()
     params: dict[str, Any] = field(default_factory=dict)
     topics: dict[str, str] = field(default_factory=dict)
@@ -113,6 +119,12 @@ def _as_tuple(v: Any, where: str) -> tuple[str, ...]:
     return tuple(v)
 
 
+def _as_bool(v: Any, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise ConfigError(f"{where}: expected true or false, got {v!r}")
+    return v
+
+
 def _as_topics(v: Any, where: str) -> dict[str, str]:
     if v is None:
         return {}
@@ -155,6 +167,7 @@ def parse(doc: Any, source: str = "pipeline.yaml") -> Graph:
             trials=_as_tuple(s.get("trials", list(TRIAL_KINDS)), f"{where}.trials"),
             role=s.get("role", "server"),
             replicas=int(s.get("replicas", 1)),
+            per_camera=_as_bool(s.get("per_camera", False), f"{where}.per_camera"),
             optional_roles=_as_tuple(s.get("optional_roles"), f"{where}.optional_roles"),
             params=dict(s.get("params") or {}),
             topics=_as_topics(s.get("topics"), f"{where}.topics"),
@@ -164,6 +177,11 @@ def parse(doc: Any, source: str = "pipeline.yaml") -> Graph:
             raise ConfigError(f"{where}: role {node.role!r} is not one of {ROLES}")
         if node.replicas < 1:
             raise ConfigError(f"{where}: replicas must be >= 1, got {node.replicas}")
+        if node.per_camera and node.replicas > 1:
+            raise ConfigError(
+                f"{where}: per_camera stages scale by camera; replicas must be 1, "
+                f"got {node.replicas}"
+            )
         for st in (*node.inputs, *node.outputs, *node.side_inputs):
             if st not in STREAMS:
                 raise ConfigError(f"{where}: unknown stream {st!r}")

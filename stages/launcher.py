@@ -25,6 +25,7 @@ Used by ``gaitflow run`` and, as a library, by ``gaitflow analyze``::
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import signal
@@ -40,7 +41,7 @@ from typing import Any
 from gaitflow.bus.config import DEFAULT_ROUTER
 from gaitflow.bus.router import wait_port
 from gaitflow.stages.graph import Graph, Node
-from gaitflow.stages.runtime import MetricsServer
+from gaitflow.stages.runtime import MetricsServer, worker_id
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from gaitflow.errors import ConfigError, StageError
@@ -51,12 +52,60 @@ ROLES = ("all", "edge", "server")
 EXIT_CONFIG = 2
 
 
+@dataclass(frozen=True)
+class WorkerPlan:
+    """One stage worker process to run: its stage, camera(s), replica and metrics port.
+
+    ``metrics_port`` None = the launcher's default (a free port with ``stage_metrics``,
+    else none); ``metrics_host`` None = the stage config's.
+    """
+
+    stage: str
+    camera: str = "*"
+    replicas: int = 1
+    worker: int = 0
+    metrics_port: int | None = None
+    metrics_host: str | None = None
+
+    @property
+    def worker_id(self) -> str:
+        return worker_id(self.camera, self.replicas, self.worker)
+
+    def stage_args(self) -> list[str]:
+        """The ``gaitflow stage`` options that make a process this worker."""
+        argv = []
+        if self.camera != "*":
+            argv += ["--camera", self.camera]
+        if self.replicas > 1:
+            argv += ["--replicas", str(self.replicas), "--worker", str(self.worker)]
+        if self.metrics_port is not None:
+            argv += ["--metrics-port", str(self.metrics_port)]
+        if self.metrics_host is not None:
+            argv += ["--metrics-host", self.metrics_host]
+        return argv
+
+
+def plan_workers(nodes: Sequence[Node], cameras: Sequence[str] = ()) -> list[WorkerPlan]:
+    """The worker processes of ``nodes`` on a machine serving ``cameras``.
+
+    A ``per_camera`` node gets one worker per camera (when cameras are given); any other
+    node its ``replicas`` workers, each taking every camera.
+    """
+    plan = []
+    for n in nodes:
+        if n.per_camera and cameras:
+            plan += [WorkerPlan(n.name, camera=c) for c in cameras]
+        else:
+            plan += [WorkerPlan(n.name, replicas=n.replicas, worker=w) for w in range(n.replicas)]
+    return plan
+
+
 @dataclass
 class Child:
-    """One supervised process: the router or a stage worker."""
+    """One supervised process: the router or a stage worker (``worker``: its worker id)."""
 
     name: str
-    worker: int
+    worker: str
     argv: list[str]
     is_router: bool = False
     proc: subprocess.Popen[bytes] | None = None
@@ -90,6 +139,10 @@ class Launcher:
     stage_args : extra arguments for every stage (e.g. ``["--rate", "max"]``).
     metrics_port : the launcher's own /metrics (None = off, 0 = a free port).
     stage_metrics : give every stage a metrics endpoint on a free port.
+    cameras : the cameras this machine serves: ``per_camera`` nodes get a worker for each
+        (see :func:`plan_workers`).
+    plan : the worker processes to run, instead of those planned from the graph (a
+        rendered role file's, with their metrics ports; see ``gaitflow run --role-file``).
     """
 
     def __init__(
@@ -112,6 +165,8 @@ class Launcher:
         python: str = sys.executable,
         env: Mapping[str, str] | None = None,
         echo: bool = True,
+        cameras: Sequence[str] = (),
+        plan: Sequence[WorkerPlan] | None = None,
     ) -> None:
         if role not in ROLES:
             raise ConfigError(f"role {role!r} is not one of {ROLES}")
@@ -131,21 +186,23 @@ class Launcher:
         self.children: list[Child] = []
         if router:
             self.children.append(
-                Child("router", 0, [*base, "router", "--listen", endpoint], is_router=True)
+                Child("router", "0", [*base, "router", "--listen", endpoint], is_router=True)
             )
-        for n in nodes:
-            for w in range(n.replicas):
-                argv = [*base, "stage", n.name, "--connect", endpoint]
-                if graph_path is not None:
-                    argv += ["--graph", str(graph_path)]
-                if config is not None:
-                    argv += ["--config", str(config)]
-                if n.replicas > 1:
-                    argv += ["--replicas", str(n.replicas), "--worker", str(w)]
-                if stage_metrics:
-                    argv += ["--metrics-port", "0"]
-                argv += list(stage_args)
-                self.children.append(Child(n.name, w, argv))
+        if plan is None:
+            plan = plan_workers(nodes, cameras)
+        known = {n.name for n in graph.nodes}
+        for wp in plan:
+            if wp.stage not in known:
+                raise ConfigError(f"{graph.source}: no stage named {wp.stage!r}")
+            argv = [*base, "stage", wp.stage, "--connect", endpoint]
+            if graph_path is not None:
+                argv += ["--graph", str(graph_path)]
+            if config is not None:
+                argv += ["--config", str(config)]
+            if stage_metrics and wp.metrics_port is None:
+                wp = dataclasses.replace(wp, metrics_port=0)
+            argv += wp.stage_args() + list(stage_args)
+            self.children.append(Child(wp.stage, wp.worker_id, argv))
         self.registry = CollectorRegistry()
         self._restarts = Counter(
             "gaitflow_launcher_restarts",
@@ -292,9 +349,9 @@ class Launcher:
                 for c in self.children
             ]
 
-    def child(self, name: str, worker: int = 0) -> Child:
+    def child(self, name: str, worker: int | str = 0) -> Child:
         for c in self.children:
-            if c.name == name and c.worker == worker:
+            if c.name == name and c.worker == str(worker):
                 return c
         raise ConfigError(f"no process {name}/{worker}")
 

@@ -74,6 +74,17 @@ AGE_BUCKETS = (*LATENCY_BUCKETS, 0.5, 1.0, 2.5, 5.0)
 MALFORMED_LOG_EVERY = 100
 
 
+def worker_id(camera: str, replicas: int, worker: int) -> str:
+    """A stage worker's name in liveliness keys, metric labels and the launcher's status.
+
+    ``"0"`` for the one worker of a stage; the replica index for replicas; the camera
+    for a worker that takes one camera (``"cam-1"``, or ``"cam-1/0"`` if replicated).
+    """
+    if camera == "*":
+        return str(worker)
+    return camera if replicas == 1 else f"{camera}/{worker}"
+
+
 @dataclass(frozen=True)
 class RuntimeOptions:
     """How one stage worker runs on the bus (not the stage's algorithm parameters).
@@ -94,6 +105,10 @@ class RuntimeOptions:
     metrics_host: str = "127.0.0.1"
     rate: str = "1"
     shm: str = "auto"
+    # Ignore a repeated input payload (same camera, trial, frame, stream and capture time;
+    # counted in gaitflow_stage_duplicates_total): set on the server role, whose inputs
+    # cross an edge's uplink, which resends what may have died in flight on a link drop.
+    dedupe: bool = False
 
     def __post_init__(self) -> None:
         if self.replicas < 1:
@@ -110,6 +125,11 @@ class RuntimeOptions:
             raise ConfigError(f"rate {self.rate!r} is not one of {RATES}")
         if self.metrics_port is not None and not 0 <= self.metrics_port < 65536:
             raise ConfigError(f"metrics port {self.metrics_port} is not a TCP port")
+
+    @property
+    def worker_id(self) -> str:
+        """This worker's name (see :func:`worker_id`)."""
+        return worker_id(self.camera, self.replicas, self.worker)
 
     @classmethod
     def from_mapping(cls, doc: Mapping[str, Any], source: str = "runtime config") -> RuntimeOptions:
@@ -133,7 +153,9 @@ class RuntimeOptions:
 class StageMetrics:
     """The Prometheus metrics of one stage worker, in their own registry."""
 
-    def __init__(self, stage: str, worker: int, registry: CollectorRegistry | None = None) -> None:
+    def __init__(
+        self, stage: str, worker: int | str, registry: CollectorRegistry | None = None
+    ) -> None:
         self.registry = registry or CollectorRegistry()
         lab = ("stage", "worker")
         r = self.registry
@@ -181,6 +203,12 @@ class StageMetrics:
         self.gaps = Counter(
             "gaitflow_stage_reorder_gaps",
             "Frame indices skipped by the re-order buffer after a timeout or a full window",
+            lab,
+            registry=r,
+        ).labels(*val)
+        self.duplicates = Counter(
+            "gaitflow_stage_duplicates",
+            "Repeated input payloads ignored (an edge uplink's resend after a link drop)",
             lab,
             registry=r,
         ).labels(*val)
@@ -417,7 +445,7 @@ class StageRuntime:
     ) -> None:
         self.bus, self.node, self.spec = bus, node, spec
         self.opt = options or RuntimeOptions()
-        self.metrics = metrics or StageMetrics(node.name, self.opt.worker)
+        self.metrics = metrics or StageMetrics(node.name, self.opt.worker_id)
         self.driver = StageDriver(node, spec, params)
         self.queue = BoundedQueue(
             self.opt.queue_size, self.opt.queue_policy, self.opt.block_timeout_s
@@ -441,6 +469,11 @@ class StageRuntime:
         self._proc = threading.Lock()
         self._inline = self.opt.queue_policy == "block"
         self._counted = {"late": 0, "join": 0, "gaps": 0}
+        self._deduper: Any = None
+        if self.opt.dedupe:
+            from gaitflow.edgebuffer import Deduper
+
+            self._deduper = Deduper()
         self.error: BaseException | None = None
         self.done = threading.Event()
         self.published = 0
@@ -463,6 +496,11 @@ class StageRuntime:
             return
         n = self.opt.replicas
         if n > 1 and stream in self.node.inputs and msg.header.frame % n != self.opt.worker:
+            return
+        if self._deduper is not None and not self._deduper.first_header(msg.header):
+            # Taken once already: a stateful core must not see it again (the re-order
+            # buffer would take a resend from far back for a restarted sequence).
+            self.metrics.duplicates.inc()
             return
         self.metrics.frames_in.inc()
         if self._inline and self._try_inline(stream, msg):
@@ -600,11 +638,11 @@ class StageRuntime:
             sel = stream_selector(site, self.node.in_topic(s), self.opt.camera)
             self._subs.append(self.bus.subscribe(sel, lambda k, p, s=s: self._on_payload(s, k, p)))
         self._thread = threading.Thread(
-            target=self._run, name=f"stage-{self.node.name}-{self.opt.worker}", daemon=True
+            target=self._run, name=f"stage-{self.node.name}-{self.opt.worker_id}", daemon=True
         )
         self._thread.start()
         self._token = self.bus.liveliness_token(
-            liveliness_key(site, self.node.name, self.opt.worker)
+            liveliness_key(site, self.node.name, self.opt.worker_id)
         )
         return self
 
@@ -645,7 +683,7 @@ class SourceRuntime:
     ) -> None:
         self.bus, self.node, self.spec, self.params = bus, node, spec, params
         self.opt = options or RuntimeOptions()
-        self.metrics = metrics or StageMetrics(node.name, self.opt.worker)
+        self.metrics = metrics or StageMetrics(node.name, self.opt.worker_id)
         self._pubs: dict[str, Any] = {}
         self._scratch = bytearray()  # reused output buffer (see _encode)
         self.published = 0
@@ -699,7 +737,7 @@ class SourceRuntime:
         self._thread = threading.Thread(target=self._run, name=f"source-{self.node.name}")
         self._thread.daemon = True
         self._token = self.bus.liveliness_token(
-            liveliness_key(self.bus.site, self.node.name, self.opt.worker)
+            liveliness_key(self.bus.site, self.node.name, self.opt.worker_id)
         )
         self._thread.start()
         return self

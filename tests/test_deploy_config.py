@@ -52,8 +52,15 @@ def test_roles_split_the_graph() -> None:
     assert names(edge) == ["grab", "calibrate", "clean", "detect", "locate"]
     assert names(server) == ["model", "label", "gait"]
     assert sorted(names(aio)) == sorted(n.name for n in graph.nodes)
-    assert {s["runtime"]["camera"] for s in edge["stages"]} == {"cam-1"}
-    assert {s["runtime"]["camera"] for s in server["stages"]} == {"*"}
+
+    def workers(doc: dict, name: str) -> list[str]:
+        return [w["id"] for s in doc["stages"] if s["name"] == name for w in s["workers"]]
+
+    assert {w["camera"] for s in edge["stages"] for w in s["workers"]} == {"cam-1"}
+    # The server's per-frame stateful stages run a worker per camera; model one for all.
+    assert workers(server, "model") == ["0"]
+    assert workers(server, "label") == workers(server, "gait") == ["cam-1", "cam-2"]
+    assert workers(aio, "label") == ["0"]
     # Edge -> server: a client with one explicit TLS endpoint, mutual TLS on.
     up = edge["uplink"]
     assert up["bus"]["mode"] == "client" and up["bus"]["connect"] == ["tls/127.0.0.1:7448"]
@@ -95,8 +102,9 @@ def test_default_configs_stay_on_loopback() -> None:
         assert hosts, path
         assert set(hosts) == {"127.0.0.1"}, f"{path.name}: {hosts}"
         assert doc["bus"]["multicast_scouting"] is False
-        for s in doc.get("stages", []):
-            assert s["runtime"]["metrics_host"] == "127.0.0.1"
+        ports = [w["metrics_port"] for s in doc.get("stages", []) for w in s["workers"]]
+        assert len(set(ports)) == len(ports), path.name
+        assert ports or path.name.endswith(".stages.yaml"), path.name
         watch = doc.get("watch") or {}
         assert watch.get("metrics_host", "127.0.0.1") == "127.0.0.1"
     prom = yaml.safe_load((DEPLOY / "observability" / "prometheus.yml").read_text())
@@ -227,7 +235,6 @@ def test_systemd_units_run_existing_commands_and_role_files() -> None:
     assert {u.stem for u in units} >= {"gaitflow-router", "gaitflow-stages", "gaitflow-uplink"}
     subst = {
         "${GAITFLOW_MACHINE}": "server",
-        "${GAITFLOW_ROLE}": "server",
         "${GAITFLOW_RECORD_STREAMS}": "raw gait",
     }
     parser = build_parser()
@@ -264,3 +271,26 @@ def test_stage_configs_load_as_the_runtime_reads_them() -> None:
     rcfg, listen = router_config(role)
     assert listen == ("tcp/127.0.0.1:7447", "tls/127.0.0.1:7448")
     rcfg.to_zenoh()  # the access-control section and TLS keys are valid zenoh config
+
+
+def test_run_role_file_starts_exactly_the_role_workers(tmp_path: Path) -> None:
+    """`gaitflow run --role-file` plans one process per listed worker, with its port."""
+    from gaitflow.stages.launcher import Launcher
+
+    role = deployment.load_role(DEPLOY / "roles" / "server.yaml")
+    plan = deployment.role_plan(role)
+    la = Launcher(load(), endpoint="tcp/127.0.0.1:7447", router=False, plan=plan)
+    got = {(c.name, c.worker): c.argv for c in la.children}
+    assert sorted(got) == [
+        ("gait", "cam-1"), ("gait", "cam-2"), ("label", "cam-1"), ("label", "cam-2"),
+        ("model", "0"),
+    ]  # fmt: skip
+    argv = got[("label", "cam-2")]
+    assert argv[argv.index("--camera") + 1] == "cam-2"
+    port = argv[argv.index("--metrics-port") + 1]
+    listed = [w for s in role["stages"] for w in s["workers"] if s["name"] == "label"]
+    assert int(port) == next(w["metrics_port"] for w in listed if w["camera"] == "cam-2")
+    assert "--camera" not in got[("model", "0")]
+    # Without a role file, --cameras gives the same per-camera split.
+    la2 = Launcher(load(), role="server", router=False, cameras=["cam-1", "cam-2"])
+    assert sorted((c.name, c.worker) for c in la2.children) == sorted(got)

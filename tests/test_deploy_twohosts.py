@@ -46,9 +46,13 @@ class LinkProxy:
         self._conns: list[socket.socket] = []
         self._lock = threading.Lock()
         self._lsock: socket.socket | None = None
+        self._quiet = threading.Event()  # a silent cut: bytes vanish, nothing is closed
         self.restore()
 
     def restore(self) -> None:
+        if self._quiet.is_set():
+            self.cut()  # the quiet connections are dead: Zenoh's lease closed them
+            self._quiet.clear()
         s = socket.socket()
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind(("127.0.0.1", self.port))
@@ -73,22 +77,30 @@ class LinkProxy:
             for a, b in ((c, u), (u, c)):
                 threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
 
-    @staticmethod
-    def _pump(a: socket.socket, b: socket.socket) -> None:
+    def _pump(self, a: socket.socket, b: socket.socket) -> None:
         with contextlib.suppress(OSError):
             while data := a.recv(65536):
-                b.sendall(data)
+                if not self._quiet.is_set():
+                    b.sendall(data)
         for x in (a, b):
             with contextlib.suppress(OSError):
                 x.shutdown(socket.SHUT_RDWR)
 
-    def cut(self) -> None:
-        """Drop every connection and refuse new ones (like a pulled cable + reboot)."""
+    def cut(self, silent: bool = False) -> None:
+        """Drop every connection and refuse new ones (like a pulled cable + reboot).
+
+        ``silent``: a pulled cable alone, no FIN and no RST: new connections are refused,
+        the open ones stay up but every byte on them vanishes until :meth:`restore`, so the
+        ends notice only through their lease (Zenoh's ``transport/link/tx/lease``).
+        """
         if self._lsock is not None:
             with contextlib.suppress(OSError):
                 self._lsock.shutdown(socket.SHUT_RDWR)
             self._lsock.close()
             self._lsock = None
+        if silent:
+            self._quiet.set()
+            return
         with self._lock:
             conns, self._conns = self._conns, []
         for c in conns:
@@ -201,16 +213,20 @@ def _spawn(*args: str) -> subprocess.Popen[bytes]:
     )
 
 
-@pytest.mark.slow
-def test_generated_roles_edge_to_server_with_link_cut(tmp_path: Path) -> None:
-    """The installed shape: ``gaitflow deploy render`` + ``gaitflow certs`` and the deploy
-    processes (server router, edge router, edge uplink). A 225-frame trial at 30 fps goes
-    from a grab-like publisher on the edge to a recorder-like subscriber on the server; the
-    link is cut for 5 s in the middle. Every frame arrives, in order, backfilled from the
-    edge's MCAP ring."""
+@contextlib.contextmanager
+def installed(
+    tmp_path: Path, camera: str = "cam-1"
+) -> Iterator[tuple[deployment.Topology, LinkProxy, Path]]:
+    """The installed shape on free 127.0.0.1 ports: ``gaitflow deploy render`` and
+    ``gaitflow certs`` into ``tmp_path``, then the server and edge routers and the edge's
+    uplink as processes (``gaitflow deploy router`` x2, ``gaitflow deploy uplink``), the
+    uplink dialling the server through a :class:`LinkProxy` (the network, cuttable).
+
+    Yields the topology, the relay and the rendered ``roles`` directory.
+    """
     ports = [free_port() for _ in range(3)]
     topo = deployment.Topology(
-        edges={"edge-1": "cam-1"},
+        edges={"edge-1": camera},
         local_port=ports[0],
         edge_local_port=ports[1],
         server_tls_port=ports[2],
@@ -230,45 +246,12 @@ def test_generated_roles_edge_to_server_with_link_cut(tmp_path: Path) -> None:
         _spawn("deploy", "router", str(roles / "server.yaml")),
         _spawn("deploy", "router", str(roles / "edge-1.yaml")),
     ]
-    got: list[int] = []
-    deduper = Deduper()
-    server_local = edge_local = None
     try:
-        wait_port(topo.local_endpoint, 20)
-        wait_port(topo.edge_local_endpoint, 20)
+        wait_port(topo.local_endpoint, 30)
+        wait_port(topo.edge_local_endpoint, 30)
         procs.append(_spawn("deploy", "uplink", str(roles / "edge-1.yaml")))
-        server_local = Bus(BusConfig(site=SITE, connect=(topo.local_endpoint,)))
-        server_local.subscribe(
-            f"gaitflow/{SITE}/*/raw",
-            dedupe(lambda k, p: got.append(decode(RawFrame, p).header.frame), deduper),
-        )
-        assert wait_for(
-            lambda: server_local.alive(f"gaitflow/{SITE}/@alive/uplink/cam-1", 0.5), 20
-        ), "the uplink never reached the server over TLS"
-        edge_local = Bus(BusConfig(site=SITE, connect=(topo.edge_local_endpoint,)))
-        pub = edge_local.publisher(f"gaitflow/{SITE}/cam-1/raw")
-        time.sleep(0.3)
-        n, cut_at, restore_at = 225, 45, 195  # 30 fps: cut at 1.5 s for 5 s
-        t0 = time.monotonic()
-        for i in range(n):
-            if i == cut_at:
-                proxy.cut()
-            if i == restore_at:
-                during = len(got)
-                proxy.restore()
-            pub.put(frame("cam-1", i, last=i == n - 1))
-            time.sleep(max(0.0, t0 + (i + 1) / 30 - time.monotonic()))
-        assert during <= cut_at, "frames reached the server while the link was cut"
-        assert wait_for(lambda: len(got) >= n, 15)
-        time.sleep(0.3)
-        assert sorted(got) == list(range(n)), f"lost: {sorted(set(range(n)) - set(got))[:20]}"
-        assert got == sorted(got), "the backlog must arrive in capture order"
-        # The ring is on the edge's disk, under the role's state directory.
-        assert list((tmp_path / "state" / "ring" / "cam-1").glob("ring-*.mcap"))
+        yield topo, proxy, roles
     finally:
-        for b in (edge_local, server_local):
-            if b is not None:
-                b.close()
         for p in reversed(procs):
             p.send_signal(signal.SIGTERM)
         for p in procs:
@@ -278,3 +261,49 @@ def test_generated_roles_edge_to_server_with_link_cut(tmp_path: Path) -> None:
                 p.kill()
                 p.wait()
         proxy.cut()
+
+
+@pytest.mark.slow
+def test_generated_roles_edge_to_server_with_link_cut(tmp_path: Path) -> None:
+    """The installed shape: ``gaitflow deploy render`` + ``gaitflow certs`` and the deploy
+    processes (server router, edge router, edge uplink). A 225-frame trial at 30 fps goes
+    from a grab-like publisher on the edge to a recorder-like subscriber on the server; the
+    link is cut for 5 s in the middle. Every frame arrives, in order, backfilled from the
+    edge's MCAP ring."""
+    got: list[int] = []
+    deduper = Deduper()
+    server_local = edge_local = None
+    with installed(tmp_path) as (topo, proxy, _roles):
+        try:
+            server_local = Bus(BusConfig(site=SITE, connect=(topo.local_endpoint,)))
+            server_local.subscribe(
+                f"gaitflow/{SITE}/*/raw",
+                dedupe(lambda k, p: got.append(decode(RawFrame, p).header.frame), deduper),
+            )
+            assert wait_for(
+                lambda: server_local.alive(f"gaitflow/{SITE}/@alive/uplink/cam-1", 0.5), 20
+            ), "the uplink never reached the server over TLS"
+            edge_local = Bus(BusConfig(site=SITE, connect=(topo.edge_local_endpoint,)))
+            pub = edge_local.publisher(f"gaitflow/{SITE}/cam-1/raw")
+            time.sleep(0.3)
+            n, cut_at, restore_at = 225, 45, 195  # 30 fps: cut at 1.5 s for 5 s
+            t0 = time.monotonic()
+            for i in range(n):
+                if i == cut_at:
+                    proxy.cut()
+                if i == restore_at:
+                    during = len(got)
+                    proxy.restore()
+                pub.put(frame("cam-1", i, last=i == n - 1))
+                time.sleep(max(0.0, t0 + (i + 1) / 30 - time.monotonic()))
+            assert during <= cut_at, "frames reached the server while the link was cut"
+            assert wait_for(lambda: len(got) >= n, 15)
+            time.sleep(0.3)
+            assert sorted(got) == list(range(n)), f"lost: {sorted(set(range(n)) - set(got))[:20]}"
+            assert got == sorted(got), "the backlog must arrive in capture order"
+            # The ring is on the edge's disk, under the role's state directory.
+            assert list((tmp_path / "state" / "ring" / "cam-1").glob("ring-*.mcap"))
+        finally:
+            for b in (edge_local, server_local):
+                if b is not None:
+                    b.close()

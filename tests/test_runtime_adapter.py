@@ -23,7 +23,7 @@ from gaitflow.stages.runtime import (
     make_runtime,
 )
 
-from gaitflow.errors import ParameterError, StageError
+from gaitflow.errors import ConfigError, ParameterError, StageError
 from gaitflow.params import ParamSet
 
 IN = "gaitflow/clinic/cam0/raw"
@@ -269,3 +269,38 @@ def test_frame_error_in_core_is_counted_and_other_exceptions_fail_the_worker() -
         rt.stop()
     assert [m.header.frame for m in outputs(bus)] == [0, 2]
     assert metric(rt, "gaitflow_stage_errors_total") == 1
+
+
+def test_per_camera_worker_takes_its_camera_only_and_names_itself_by_it() -> None:
+    bus = FakeBus()
+    src = bus.connected()
+    opt = RuntimeOptions(camera="cam-2")
+    rt = StageRuntime(bus, RELAY, relay.SPEC, {}, opt).start()
+    assert src.alive("gaitflow/clinic/@alive/**") == ["gaitflow/clinic/@alive/relay/cam-2"]
+    for i in range(3):
+        for cam in ("cam-1", "cam-2"):
+            src.put(f"gaitflow/clinic/{cam}/raw", frame(i, cam=cam).encode())
+    rt.stop()
+    assert outputs(bus, "gaitflow/clinic/cam-1/raw-1") == []
+    assert [m.header.frame for m in outputs(bus, "gaitflow/clinic/cam-2/raw-1")] == [0, 1, 2]
+    labels = {"stage": "relay", "worker": "cam-2"}
+    assert rt.metrics.registry.get_sample_value("gaitflow_stage_frames_in_total", labels) == 3
+
+
+def test_per_camera_stage_may_not_also_be_replicated() -> None:
+    from gaitflow.stages.graph import parse
+
+    doc = {
+        "version": 1,
+        "stages": [
+            {"name": "src", "module": "m", "outputs": ["raw"]},
+            {"name": "r", "module": "m", "inputs": ["raw"], "outputs": ["clean"],
+             "per_camera": True, "replicas": 2},
+        ]
+    }  # fmt: skip
+    with pytest.raises(ConfigError, match="per_camera"):
+        parse(doc, "test graph")
+    doc["stages"][1]["replicas"] = 1
+    doc["stages"][1]["per_camera"] = "yes"
+    with pytest.raises(ConfigError, match="true or false"):
+        parse(doc, "test graph")

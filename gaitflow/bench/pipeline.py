@@ -43,7 +43,14 @@ from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.bus import Bus
 from gaitflow.bus.keys import stream_key
 from gaitflow.bus.router import client_config, local_endpoint
-from gaitflow.deployment import RECONNECT, REORDER_TIMEOUT_S
+from gaitflow.deployment import (
+    RECONNECT,
+    REORDER_TIMEOUT_S,
+    Topology,
+    render_all_in_one,
+    render_server,
+    stage_config,
+)
 from gaitflow.errors import ConfigError
 from gaitflow.schemas import Message, peek_header
 
@@ -209,9 +216,23 @@ def run_once(
     # router.
     bus_doc = {"connect": [ep], "site": graph.site, "extra": {"connect/retry": RECONNECT}}
     cfg = os.path.join(workdir, f"stages-{n}.yaml")
+    # The runtime options the deployed role's stage config gives (queue policy, duplicate
+    # filter, re-order timeout), from the same generator.
+    role = (render_server if scope == "server" else render_all_in_one)(graph, Topology())
+    runtime = {**stage_config(role)["runtime"], "reorder_timeout_s": reorder_timeout_s}
     with open(cfg, "w") as f:
-        yaml.safe_dump({"bus": bus_doc, "runtime": {"reorder_timeout_s": reorder_timeout_s}}, f)
-    la = Launcher(graph, stages=stages, endpoint=ep, config=cfg, stage_metrics=True, echo=False)
+        yaml.safe_dump({"bus": bus_doc, "runtime": runtime}, f)
+    # The worker processes a server role serving these cameras runs (a label and a gait
+    # worker per camera), as `gaitflow deploy render` plans them.
+    la = Launcher(
+        graph,
+        stages=stages,
+        endpoint=ep,
+        config=cfg,
+        stage_metrics=True,
+        echo=False,
+        cameras=cameras,
+    )
     la.start()
     bus: Bus | None = None
     try:

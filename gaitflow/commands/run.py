@@ -5,10 +5,15 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import tempfile
+from pathlib import Path
+
+import yaml
 
 from gaitflow.bus.config import DEFAULT_ROUTER
 from gaitflow.bus.router import free_port
 from gaitflow.commands._bus_args import stop_on_signals
+from gaitflow.deployment import load_role, role_plan, stage_config
 from gaitflow.stages import graph as graph_mod
 from gaitflow.stages.launcher import ROLES, Launcher
 from gaitflow.stages.runtime import StageConfig
@@ -17,6 +22,8 @@ EXAMPLE = """\
 Examples:
   gaitflow run
   gaitflow run --role edge --config edge.yaml
+  gaitflow run --role server --cameras cam-1,cam-2     # label and gait: a worker per camera
+  gaitflow run --role-file deploy/roles/server.yaml --no-router
   gaitflow run --graph my-pipeline.yaml --metrics-port 9100 --stage-metrics
 """
 
@@ -36,6 +43,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="stage config passed to every stage")
     p.add_argument("--stage", action="append", help="run only this stage (repeatable)")
     p.add_argument(
+        "--cameras",
+        default="",
+        help="cameras this machine serves (comma-separated): per-camera stages (label, "
+        "gait) run one worker each",
+    )
+    p.add_argument(
+        "--role-file",
+        metavar="FILE",
+        help="a rendered role (deploy/roles/*.yaml): run exactly its stage workers, with "
+        "their metrics ports; --config defaults to the role's stage config",
+    )
+    p.add_argument(
         "--endpoint",
         default=None,
         help=f"router endpoint (default: the config's first connect endpoint, or {DEFAULT_ROUTER})",
@@ -53,7 +72,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     graph = graph_mod.load(args.graph)
-    cfg = StageConfig.load(args.config)
+    plan = None
+    config = args.config
+    if args.role_file:
+        role = load_role(args.role_file)
+        plan = role_plan(role)
+        if config is None:
+            path = Path(tempfile.mkdtemp(prefix="gaitflow-run-")) / "stages.yaml"
+            path.write_text(yaml.safe_dump(stage_config(role)))
+            config = str(path)
+    cfg = StageConfig.load(config)
     endpoint = args.endpoint or (cfg.bus.connect[0] if cfg.bus.connect else DEFAULT_ROUTER)
     if endpoint.endswith(":0"):
         endpoint = f"{endpoint[:-2]}:{free_port()}"
@@ -63,10 +91,12 @@ def run(args: argparse.Namespace) -> int:
         stages=args.stage,
         endpoint=endpoint,
         router=not args.no_router,
-        config=args.config,
+        config=config,
         graph_path=args.graph,
         metrics_port=args.metrics_port,
         stage_metrics=args.stage_metrics,
+        cameras=[c.strip() for c in args.cameras.split(",") if c.strip()],
+        plan=plan,
     )
     with stop_on_signals() as stop:
         la.start()

@@ -46,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--metrics-port", type=int, default=None, help="Prometheus port (0 = pick a free one)"
     )
+    p.add_argument(
+        "--metrics-host", default=None, help="address /metrics binds (default 127.0.0.1)"
+    )
     p.add_argument("--rate", choices=("1", "max"), default=None, help="source pacing")
     p.add_argument(
         "--connect",
@@ -79,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         replicas=replicas,
         worker=args.worker,
         metrics_port=args.metrics_port,
+        metrics_host=args.metrics_host,
         rate=args.rate,
         shm=args.shm,
     )
