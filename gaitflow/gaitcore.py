@@ -30,7 +30,7 @@ frames this is exactly the recommended ``P1 = x_i + (x_{i+1} - x_{i-1}) / 6``. E
 from __future__ import annotations
 
 import itertools
-import warnings
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,6 +61,24 @@ def runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(starts.tolist(), stops.tolist(), strict=True))
 
 
+def runs_rows(mask: np.ndarray) -> list[list[tuple[int, int]]]:
+    """:func:`runs` of every row of a 2-D bool array, in one set of numpy calls.
+
+    mask : (R, N). Returns R lists of inclusive (first, last) pairs.
+    """
+    m = np.asarray(mask, dtype=bool)
+    if m.shape[0] == 0:
+        return []
+    pad = np.zeros((m.shape[0], 1), dtype=np.int8)
+    d = np.diff(np.concatenate((pad, m.view(np.int8), pad), axis=1), axis=1)
+    # row-major order: by row, then by position, so starts and stops pair up
+    row, starts = np.nonzero(d == 1)
+    stops = np.nonzero(d == -1)[1] - 1
+    bounds = np.searchsorted(row, np.arange(m.shape[0] + 1)).tolist()
+    pairs = list(zip(starts.tolist(), stops.tolist(), strict=True))
+    return [pairs[a:b] for a, b in itertools.pairwise(bounds)]
+
+
 def _bezier(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray, p3: np.ndarray, s: np.ndarray):
     s = s[:, None]
     u = 1.0 - s
@@ -84,34 +102,52 @@ def fill_gaps(
     filled : same shape as ``x``; filled rows hold the Bezier values.
     was_filled : (F,) bool, the rows that were filled.
     """
-    t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
     flat = x.ndim == 1
     xs = x[:, None] if flat else x
+    out, filled = fill_gaps_markers(t, xs[:, None, :], max_gap_s)
+    return (out[:, 0, 0] if flat else out[:, 0]), filled[:, 0]
+
+
+def fill_gaps_markers(
+    t: np.ndarray, x: np.ndarray, max_gap_s: float = 0.3, first_gap: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fill_gaps` of M series at once: t (F,), x (F, M, D) -> filled (F, M, D) and
+    was_filled (F, M). Only markers with a gap are visited; gaps starting before frame
+    ``first_gap`` are left as they are (the caller has them)."""
+    t = np.asarray(t, dtype=float)
+    xs = np.asarray(x, dtype=float)
     out = xs.copy()
-    miss = missing_rows(xs)
-    filled = np.zeros(len(t), dtype=bool)
-    for a, b in runs(miss):
-        lo, hi = a - 1, b + 1  # the seen samples around the gap
-        if lo < 0 or hi >= len(t):
-            continue
-        h = t[hi] - t[lo]
-        if not h <= max_gap_s + 1e-9:
-            continue
-        chord = (xs[hi] - xs[lo]) / h
-        # one-sided tangents from the neighbouring seen sample, else the chord slope
-        m0 = (xs[lo] - xs[lo - 1]) / (t[lo] - t[lo - 1]) if lo >= 1 and not miss[lo - 1] else chord
-        m3 = (
-            (xs[hi + 1] - xs[hi]) / (t[hi + 1] - t[hi])
-            if hi + 1 < len(t) and not miss[hi + 1]
-            else chord
-        )
-        p0, p3 = xs[lo], xs[hi]
-        p1, p2 = p0 + m0 * h / 3.0, p3 - m3 * h / 3.0
-        s = (t[a : b + 1] - t[lo]) / h
-        out[a : b + 1] = _bezier(p0, p1, p2, p3, s)
-        filled[a : b + 1] = True
-    return (out[:, 0] if flat else out), filled
+    miss = ~np.all(np.isfinite(xs), axis=2)  # (F, M)
+    filled = np.zeros(miss.shape, dtype=bool)
+    nt = len(t)
+    cols = np.flatnonzero(miss.any(axis=0)).tolist()
+    for k, gaps in zip(cols, runs_rows(miss[:, cols].T), strict=True):
+        mk = miss[:, k]
+        xk = xs[:, k]
+        for a, b in gaps:
+            lo, hi = a - 1, b + 1  # the seen samples around the gap
+            if lo < 0 or hi >= nt or a < first_gap:
+                continue
+            h = t[hi] - t[lo]
+            if not h <= max_gap_s + 1e-9:
+                continue
+            chord = (xk[hi] - xk[lo]) / h
+            # one-sided tangents from the neighbouring seen sample, else the chord slope
+            m0 = (
+                (xk[lo] - xk[lo - 1]) / (t[lo] - t[lo - 1]) if lo >= 1 and not mk[lo - 1] else chord
+            )
+            m3 = (
+                (xk[hi + 1] - xk[hi]) / (t[hi + 1] - t[hi])
+                if hi + 1 < nt and not mk[hi + 1]
+                else chord
+            )
+            p0, p3 = xk[lo], xk[hi]
+            p1, p2 = p0 + m0 * h / 3.0, p3 - m3 * h / 3.0
+            s = (t[a : b + 1] - t[lo]) / h
+            out[a : b + 1, k] = _bezier(p0, p1, p2, p3, s)
+            filled[a : b + 1, k] = True
+    return out, filled
 
 
 def resample(t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
@@ -129,49 +165,217 @@ def resample(t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0) -> tuple[np.n
     tq : (Q,) output times, ``t[0] + k / rate_hz`` up to ``t[-1]``.
     xq : (Q,) or (Q, D).
     """
-    t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
     flat = x.ndim == 1
     xs = x[:, None] if flat else x
+    tq, xq = resample_markers(t, xs[:, None, :], rate_hz)
+    return tq, (xq[:, 0, 0] if flat else xq[:, 0])
+
+
+def resample_markers(
+    t: np.ndarray, x: np.ndarray, rate_hz: float = 100.0, first: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`resample` of M series at once (one set of numpy calls instead of M).
+
+    t : (F,) s; x : (F, M, D), a marker missing in a frame when any of its D values is NaN.
+    first : evaluate the output samples from this one on only (the caller has the others).
+    Returns tq (Q,) and xq (Q - first, M, D). Each marker gets exactly what :func:`resample`
+    gives it alone: every operation is elementwise over the marker axis, and an output
+    sample depends on the four frames around its segment only.
+    """
+    t = np.asarray(t, dtype=float)
+    xs = np.asarray(x, dtype=float)
     n = len(t)
     if n == 0:
-        return np.zeros(0), np.zeros((0,) if flat else (0, xs.shape[1]))
+        return np.zeros(0), np.zeros((0, *xs.shape[1:]))
     nq = int(np.floor((t[-1] - t[0]) * rate_hz + 1e-6)) + 1
     tq = t[0] + np.arange(nq) / rate_hz
     if n == 1:
-        xq = np.repeat(xs, nq, axis=0)
-        return tq, (xq[:, 0] if flat else xq)
-    miss = missing_rows(xs)
+        return tq, np.repeat(xs, nq - first, axis=0)
+    seg = np.clip(np.searchsorted(t, tq[first:], side="right") - 1, 0, n - 2)
+    if len(seg) == 0:
+        return tq, np.zeros((0, *xs.shape[1:]))
+    # frames from one before the first segment on: the tangent of a frame needs its
+    # neighbours, and no sample evaluated here uses the tangent of the frame j0 itself
+    j0 = max(int(seg[0]) - 1, 0)
+    t, xs, seg = t[j0:], xs[j0:], seg - j0
+    n = len(t)
+    miss = ~np.all(np.isfinite(xs), axis=2)  # (F, M)
     # tangents: central difference where both neighbours are seen, else one-sided
     m = np.full_like(xs, np.nan)
     ok = ~miss
-    prev_ok = np.r_[False, ok[:-1]] & ok
-    next_ok = np.r_[ok[1:], False] & ok
+    prev_ok = np.concatenate((np.zeros((1, ok.shape[1]), dtype=bool), ok[:-1])) & ok
+    next_ok = np.concatenate((ok[1:], np.zeros((1, ok.shape[1]), dtype=bool))) & ok
     i = np.arange(n)
     ip, inx = np.maximum(i - 1, 0), np.minimum(i + 1, n - 1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        central = (xs[inx] - xs[ip]) / (t[inx] - t[ip])[:, None]
-        forward = (xs[inx] - xs) / (t[inx] - t)[:, None]
-        backward = (xs - xs[ip]) / (t - t[ip])[:, None]
+        central = (xs[inx] - xs[ip]) / (t[inx] - t[ip])[:, None, None]
+        forward = (xs[inx] - xs) / (t[inx] - t)[:, None, None]
+        backward = (xs - xs[ip]) / (t - t[ip])[:, None, None]
     m[prev_ok & next_ok] = central[prev_ok & next_ok]
     m[next_ok & ~prev_ok] = forward[next_ok & ~prev_ok]
     m[prev_ok & ~next_ok] = backward[prev_ok & ~next_ok]
     m[ok & ~prev_ok & ~next_ok] = 0.0
-    seg = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, n - 2)
     h = t[seg + 1] - t[seg]
-    s = (tq - t[seg]) / h
+    s = (tq[first:] - t[seg]) / h
     p0, p3 = xs[seg], xs[seg + 1]
-    p1 = p0 + m[seg] * (h / 3.0)[:, None]
-    p2 = p3 - m[seg + 1] * (h / 3.0)[:, None]
-    s2 = s[:, None]
+    p1 = p0 + m[seg] * (h / 3.0)[:, None, None]
+    p2 = p3 - m[seg + 1] * (h / 3.0)[:, None, None]
+    s2 = s[:, None, None]
     u = 1.0 - s2
     xq = u**3 * p0 + 3 * u**2 * s2 * p1 + 3 * u * s2**2 * p2 + s2**3 * p3
     # exact hits on a seen sample keep it even when the next one is missing
-    exact = np.isclose(s, 0.0, atol=1e-9) & ~miss[seg]
-    xq[exact] = xs[seg[exact]]
+    exact = np.isclose(s, 0.0, atol=1e-9)[:, None] & ~miss[seg]  # (Q, M)
+    xq[exact] = p0[exact]
     bad = (miss[seg] | miss[seg + 1]) & ~exact
     xq[bad] = np.nan
-    return tq, (xq[:, 0] if flat else xq)
+    return tq, xq
+
+
+@dataclass(frozen=True)
+class Resampled:
+    """Markers gap-filled and resampled (:func:`fill_resample_markers`), kept with their
+    input so that the series can be extended when frames are added.
+
+    t : (F,) s; x : (F, M, D) input; filled : (F, M, D); was_filled : (F, M) bool;
+    tq : (Q,); xq : (Q, M, D).
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    filled: np.ndarray
+    was_filled: np.ndarray
+    tq: np.ndarray
+    xq: np.ndarray
+    max_gap_s: float
+    rate_hz: float
+
+
+def _first_difference(a: np.ndarray, b: np.ndarray) -> int:
+    """The first index along axis 0 where ``a`` and ``b[:len(a)]`` differ bit for bit
+    (``len(a)`` if none; NaN equals NaN)."""
+    n = min(len(a), len(b))
+    da = np.ascontiguousarray(a[:n]).view(np.uint8).reshape(n, -1)
+    db = np.ascontiguousarray(b[:n]).view(np.uint8).reshape(n, -1)
+    diff = np.flatnonzero((da != db).any(axis=1))
+    return int(diff[0]) if diff.size else n
+
+
+def _stable_frames(t: np.ndarray, x: np.ndarray, max_gap_s: float, prev: Resampled) -> int:
+    """How many leading frames of (t, x) fill exactly as ``prev`` filled them.
+
+    Per marker: up to its first frame that differs from ``prev`` (d), except a gap that
+    reaches within two frames of d, which starts the changed part, unless it was left
+    unfilled before and is still unfillable (a marker out of view at the end stays so).
+    """
+    n0 = len(prev.t)
+    d_t = _first_difference(prev.t, t)
+    # per marker, the first frame that differs from prev (bit for bit)
+    changed = (
+        np.ascontiguousarray(prev.x).view(np.uint8).reshape(n0, x.shape[1], -1)
+        != np.ascontiguousarray(x[:n0]).view(np.uint8).reshape(n0, x.shape[1], -1)
+    ).any(axis=2)
+    first = np.where(changed.any(axis=0), changed.argmax(axis=0), n0)
+    d = np.minimum(first, d_t).tolist()
+    # the gaps near the changed frames decide; look at a window before them first (a long
+    # trial has many gaps), and at everything if a gap that matters runs out of the window
+    lo = max(min(d) - 64, 0)
+    found = _stable_in(t, x, max_gap_s, prev, d, lo)
+    return found if found is not None else _stable_in(t, x, max_gap_s, prev, d, 0)  # type: ignore[return-value]
+
+
+def _stable_in(
+    t: np.ndarray, x: np.ndarray, max_gap_s: float, prev: Resampled, d: list[int], lo: int
+) -> int | None:
+    """:func:`_stable_frames` from the gaps after frame ``lo``; None when a gap that
+    matters begins before ``lo`` (its start is then unknown here)."""
+    nt = len(t)
+    n0 = len(prev.t)
+    stable = min(d)
+    miss = ~np.all(np.isfinite(x[lo:]), axis=2)  # (F - lo, M)
+    cols = np.flatnonzero(miss.any(axis=0)).tolist()
+    gaps_of = {
+        k: [(a + lo, b + lo) for a, b in gaps]
+        for k, gaps in zip(cols, runs_rows(miss[:, cols].T), strict=True)
+    }
+
+    def cut(a: int, k: int) -> bool:  # the gap may begin before the window
+        return a == lo and lo > 0 and bool(miss[0, k])
+
+    for k, dk in enumerate(d):
+        for a, b in gaps_of.get(k, ()):
+            if b + 2 < dk:
+                continue
+            if a >= stable:
+                break
+            if cut(a, k):
+                return None
+            g0, g1 = a - 1, b + 1
+            fillable = g0 >= 0 and g1 < nt and t[g1] - t[g0] <= max_gap_s + 1e-9
+            if fillable or prev.was_filled[a : min(b + 1, n0), k].any():
+                stable = min(stable, a)
+                break
+    # the tail is filled from ``stable`` on: no fillable gap of any marker may straddle it
+    moved = True
+    while moved:
+        moved = False
+        if stable < lo:
+            return None
+        for k in np.flatnonzero(miss[stable - lo] if stable < nt else ()).tolist():
+            for a, b in gaps_of[k]:
+                if a < stable <= b:
+                    if cut(a, k):
+                        return None
+                    g0, g1 = a - 1, b + 1
+                    if g0 >= 0 and g1 < nt and t[g1] - t[g0] <= max_gap_s + 1e-9:
+                        stable, moved = a, True
+                    break
+    return stable
+
+
+def fill_resample_markers(
+    t: np.ndarray,
+    x: np.ndarray,
+    max_gap_s: float = 0.3,
+    rate_hz: float = 100.0,
+    prev: Resampled | None = None,
+) -> Resampled:
+    """:func:`fill_gaps_markers` then :func:`resample_markers`, reusing ``prev`` where the
+    result cannot differ: the same values as computing from scratch, bit for bit.
+
+    A filled gap depends on the frames from two before to one after it, a resampled sample
+    on the frames from one before to two after its segment. When the frames of ``prev`` are
+    a prefix of (t, x) up to frame d (a growing trial), every gap ending two frames before
+    d keeps its filling, and every output sample whose segment ends three frames before the
+    first changed filled frame keeps its value; only the rest is computed.
+
+    t : (F,) s; x : (F, M, D), NaN = missing. Returns a :class:`Resampled`.
+    """
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    stable = 0  # frames whose filled values are those of prev
+    if (
+        prev is not None
+        and prev.x.shape[1:] == x.shape[1:]
+        and (prev.max_gap_s, prev.rate_hz) == (max_gap_s, rate_hz)
+        and len(prev.t) <= len(t)
+        and len(t) >= 2
+    ):
+        stable = _stable_frames(t, x, max_gap_s, prev)
+    if stable < 3 or prev is None:
+        filled, was = fill_gaps_markers(t, x, max_gap_s)
+        tq, xq = resample_markers(t, filled, rate_hz)
+        return Resampled(t, x, filled, was, tq, xq, max_gap_s, rate_hz)
+    start = max(stable - 2, 0)  # gaps from ``stable`` on see two frames before them
+    tail, was = fill_gaps_markers(t[start:], x[start:], max_gap_s, first_gap=stable - start)
+    filled = np.concatenate((prev.filled[:stable], tail[stable - start :]))
+    was = np.concatenate((prev.was_filled[:stable], was[stable - start :]))
+    tq_all = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * rate_hz + 1e-6)) + 1) / rate_hz
+    keep = int(np.searchsorted(tq_all, t[stable - 2], side="left"))
+    keep = min(keep, len(prev.xq))
+    tq, xq_tail = resample_markers(t, filled, rate_hz, first=keep)
+    xq = np.concatenate((prev.xq[:keep], xq_tail))
+    return Resampled(t, x, filled, was, tq, xq, max_gap_s, rate_hz)
 
 
 def _window_sums(
@@ -251,14 +455,58 @@ def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) ->
             np.where(pair[..., None], before, np.nan),
             np.where(pair[..., None], after, np.nan),
         ]
-    neigh = np.stack(parts)  # (2 half, F, M, 3)
-    enough = np.isfinite(neigh[..., 0]).any(axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN where not enough
-        med = np.nanmedian(neigh, axis=0)
+    neigh = np.stack(parts, axis=-1)  # (F, M, 3, 2 half)
+    enough = np.isfinite(neigh[..., 0, :]).any(axis=-1)
+    med = nanmedian_last(neigh)
     dev = np.linalg.norm(pos - med, axis=-1)
     bad = enough & np.isfinite(dev) & (dev > max_dev_mm)
     out[bad] = np.nan
+    return out
+
+
+def nanmedian_last(x: np.ndarray) -> np.ndarray:
+    """Median over the last axis ignoring NaN, NaN where all are NaN; (..., K) -> (...).
+
+    The same values as ``np.nanmedian(x, axis=-1)`` (mean of the two middle values, as
+    ``(low + high) / 2``), without its per-call cost on many short rows or its warning.
+    """
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 1:  # one row (a contact's heel positions): fewer numpy calls
+        v = np.sort(x[~np.isnan(x)]).tolist()
+        n = len(v)
+        if n == 0:
+            return np.array(np.nan)
+        return np.array(v[n // 2] if n % 2 else (v[n // 2 - 1] + v[n // 2]) / 2.0)
+    srt = np.sort(x, axis=-1)  # NaN sorts last
+    count = (~np.isnan(x)).sum(axis=-1, keepdims=True)
+    high = count // 2
+    low = np.where(count % 2 == 1, high, high - 1)
+    idx = np.concatenate((np.maximum(low, 0), high), axis=-1)
+    pair = np.take_along_axis(srt, np.minimum(idx, x.shape[-1] - 1), axis=-1)
+    with np.errstate(invalid="ignore"):
+        med = (pair[..., 0] + pair[..., 1]) / 2.0
+    return np.where(count[..., 0] > 0, med, np.nan)
+
+
+def percentile_linear(x: np.ndarray, q: Sequence[float]) -> list[float]:
+    """``np.percentile(x, q)`` (the default "linear" method) of a 1-D array of finite values.
+
+    The same arithmetic as numpy (virtual index ``(n - 1) q / 100``, its ``_lerp``), on one
+    sort: numpy's generic quantile machinery costs far more than the sort on a walking pass.
+    x : (N,), N >= 1, finite. Returns one float per entry of ``q``.
+    """
+    xs = np.sort(np.asarray(x, dtype=float)).tolist()
+    n = len(xs)
+    out = []
+    for qq in q:
+        v = (n - 1) * (float(qq) / 100)
+        if v >= n - 1:
+            out.append(xs[-1])
+            continue
+        i = math.floor(v)
+        a, b, g = xs[i], xs[i + 1], v - i
+        d = b - a
+        out.append(b - d * (1 - g) if g >= 0.5 else a + d * g)
     return out
 
 
@@ -269,7 +517,7 @@ def segment_outliers(a: np.ndarray, b: np.ndarray, tol: float = 0.15) -> np.ndar
     ok = np.isfinite(d)
     if ok.sum() < 3:
         return np.zeros(len(d), dtype=bool)
-    ref = float(np.median(d[ok]))
+    ref = float(nanmedian_last(d[ok]))  # np.median of these finite values, cheaper
     return ok & (np.abs(d - ref) > tol * ref)
 
 
@@ -398,7 +646,7 @@ class InflectionResult:
     all_ranges: tuple[FlatRange, ...] = field(default=())
 
 
-@dataclass
+@dataclass(slots=True)
 class _Range:  # mutable working copy inside inflection_search only
     left: int
     right: int
@@ -407,6 +655,21 @@ class _Range:  # mutable working copy inside inflection_search only
     right_locked: bool = False
     left_level: float = float("nan")
     right_level: float = float("nan")
+    # bounds at the start of the current level; -1 for a range born at this level
+    old_left: int = -1
+    old_right: int = -1
+
+
+def level_runs(y: np.ndarray, levels: np.ndarray) -> list[list[tuple[int, int]]]:
+    """:func:`runs` of ``y <= level`` for every level at once (NaN is never below).
+
+    y : (N,); levels : (L,). Returns L lists of inclusive (first, last) pairs. One 2-D pass
+    instead of L small ones: the per-call cost of numpy dominates on a walking pass.
+    """
+    if len(y) == 0 or len(levels) == 0:
+        return [[] for _ in levels]
+    with np.errstate(invalid="ignore"):
+        return runs_rows(y[None, :] <= levels[:, None])
 
 
 def inflection_search(
@@ -451,74 +714,72 @@ def inflection_search(
     fin = np.isfinite(y)
     if fin.sum() < 2:
         return InflectionResult((), (), float("nan"), float("nan"))
-    lo, hi = np.percentile(y[fin], [1.0, 99.0])
+    lo, hi = percentile_linear(y[fin], (1.0, 99.0))
     if not hi - lo > 1e-9:
         return InflectionResult((), (), float(lo), float(hi))
     yn = np.where(fin, np.clip((y - lo) / (hi - lo), 0.0, 1.0), np.nan)
     nlev = int(np.ceil(1.0 / gamma - 1e-9))
     levels = np.minimum(gamma * np.arange(1, nlev + 1), 1.0)
     n = len(y)
+    seen = fin.tolist()  # list lookups: the loops below index it per range end
 
     def is_open_left(i: int) -> bool:
-        return i == 0 or not fin[i - 1]
+        return i == 0 or not seen[i - 1]
 
     def is_open_right(i: int) -> bool:
-        return i == n - 1 or not fin[i + 1]
+        return i == n - 1 or not seen[i + 1]
 
     ranges: list[_Range] = []
     prev_level = 0.0
-    with np.errstate(invalid="ignore"):
-        for k in levels:
-            mask = fin & (yn <= k + 1e-12)
-            new_list: list[_Range] = []
-            old_bounds = {id(r): (r.left, r.right) for r in ranges}
-            ranges.sort(key=lambda r: r.left)
-            j = 0
-            for s, e in runs(mask):
-                hit = []
-                while j < len(ranges) and ranges[j].right < s:
-                    new_list.append(ranges[j])
-                    j += 1
-                while j < len(ranges) and ranges[j].left <= e:
-                    hit.append(ranges[j])
-                    j += 1
-                if not hit:
-                    new_list.append(_Range(s, e, float(k)))
-                    continue
-                # merge neighbours whose facing ends are both unlocked
-                merged: list[_Range] = [hit[0]]
-                for r in hit[1:]:
-                    last = merged[-1]
-                    if not last.right_locked and not r.left_locked:
-                        old_l = old_bounds[id(last)][0]
-                        old_r = old_bounds[id(r)][1]
-                        last.right, last.right_locked = r.right, r.right_locked
-                        last.right_level = r.right_level
-                        last.born = min(last.born, r.born)
-                        old_bounds[id(last)] = (old_l, old_r)
-                    else:
-                        merged.append(r)
-                for i, r in enumerate(merged):
-                    if not r.left_locked:
-                        r.left = s if i == 0 else merged[i - 1].right + 1
-                    if not r.right_locked:
-                        r.right = e if i == len(merged) - 1 else merged[i + 1].left - 1
-                    new_list.append(r)
-            new_list.extend(ranges[j:])
-            for r in new_list:
-                if id(r) not in old_bounds:
-                    continue
-                ol, orr = old_bounds[id(r)]
-                length = orr - ol + 1
-                # R4: the growth rate, not the slope (a flat floor floods fast, a wall slowly)
-                grew_l = (ol - r.left) / length
-                if not r.left_locked and not is_open_left(ol) and grew_l < xi:
-                    r.left, r.left_locked, r.left_level = ol, True, prev_level
-                grew_r = (r.right - orr) / length
-                if not r.right_locked and not is_open_right(orr) and grew_r < phi:
-                    r.right, r.right_locked, r.right_level = orr, True, prev_level
-            ranges = new_list
-            prev_level = float(k)
+    all_runs = level_runs(yn, levels + 1e-12)  # R2 for every level (yn is NaN where unseen)
+    for k, level_run in zip(levels.tolist(), all_runs, strict=True):
+        new_list: list[_Range] = []
+        # ranges stay in time order: runs are, and locking moves an end back inside its run
+        for r in ranges:
+            r.old_left, r.old_right = r.left, r.right
+        j = 0
+        nr = len(ranges)
+        for s, e in level_run:
+            while j < nr and ranges[j].right < s:
+                new_list.append(ranges[j])
+                j += 1
+            j0 = j
+            while j < nr and ranges[j].left <= e:
+                j += 1
+            if j == j0:
+                new_list.append(_Range(s, e, float(k)))
+                continue
+            # merge neighbours whose facing ends are both unlocked
+            merged: list[_Range] = [ranges[j0]]
+            for r in ranges[j0 + 1 : j]:
+                last = merged[-1]
+                if not last.right_locked and not r.left_locked:
+                    last.right, last.right_locked = r.right, r.right_locked
+                    last.right_level = r.right_level
+                    last.born = min(last.born, r.born)
+                    last.old_right = r.old_right
+                else:
+                    merged.append(r)
+            nm = len(merged)
+            for i, r in enumerate(merged):
+                if not r.left_locked:
+                    r.left = s if i == 0 else merged[i - 1].right + 1
+                if not r.right_locked:
+                    r.right = e if i == nm - 1 else merged[i + 1].left - 1
+                new_list.append(r)
+        new_list.extend(ranges[j:])
+        for r in new_list:
+            ol, orr = r.old_left, r.old_right
+            if ol < 0:
+                continue
+            length = orr - ol + 1
+            # R4: the growth rate, not the slope (a flat floor floods fast, a wall slowly)
+            if not r.left_locked and not is_open_left(ol) and (ol - r.left) / length < xi:
+                r.left, r.left_locked, r.left_level = ol, True, prev_level
+            if not r.right_locked and not is_open_right(orr) and (r.right - orr) / length < phi:
+                r.right, r.right_locked, r.right_level = orr, True, prev_level
+        ranges = new_list
+        prev_level = float(k)
 
     ranges.sort(key=lambda r: r.left)
     frozen = [
@@ -548,11 +809,11 @@ def inflection_search(
     # bump (the heel's slow rise split one valley at a lock) are one contact
     merged: list[FlatRange] = []
     for r in kept:
-        if merged:
+        if merged and r.left - merged[-1].right <= 5:
             a = merged[-1]
             gap = yn[a.right + 1 : r.left]
             top = float(np.max(gap)) if gap.size else 0.0  # NaN (missing) never merges
-            if top < min_swing and r.left - a.right <= 5:
+            if top < min_swing:
                 merged[-1] = FlatRange(
                     a.left,
                     r.right,
@@ -568,10 +829,13 @@ def inflection_search(
         merged.append(r)
     kept = merged
     peaks = []
+    yl = yn.tolist()  # a few short slices: plain Python beats numpy's per-call cost
     for a, b in itertools.pairwise(kept):
-        seg = yn[a.right + 1 : b.left]
-        if seg.size and np.isfinite(seg).any():
-            peaks.append(a.right + 1 + int(np.nanargmax(seg)))
+        seg = yl[a.right + 1 : b.left]
+        seen_values = [v for v in seg if v == v]  # NaN != NaN
+        if seen_values:
+            # the first highest sample, as np.nanargmax
+            peaks.append(a.right + 1 + seg.index(max(seen_values)))
     return InflectionResult(tuple(kept), tuple(peaks), float(lo), float(hi), tuple(frozen))
 
 
@@ -669,7 +933,7 @@ def foot_contacts(
     )
     vh = _speed(t, np.asarray(heel_prog, dtype=float))
     vt = _speed(t, np.asarray(toe_prog, dtype=float))
-    ref = np.nanpercentile(vh, 90) if np.isfinite(vh).any() else float("nan")
+    ref = percentile_linear(vh[~np.isnan(vh)], (90,))[0] if np.isfinite(vh).any() else float("nan")
     use_vel = refine == "velocity" and np.isfinite(ref) and ref > 0
     out: list[Contact] = []
     hranges = list(hr.ranges)
@@ -682,9 +946,10 @@ def foot_contacts(
                 first = max(first, hranges[i - 1].right + 1)
             if i > 0 and hr.peaks and i - 1 < len(hr.peaks):
                 first = max(first, hr.peaks[i - 1])
-            j = first
-            while j < r.right and not (vh[j] <= hs_speed_frac * ref):
-                j += 1
+            # the first sample from there on where the heel speed is down (NaN never is)
+            with np.errstate(invalid="ignore"):
+                rest = np.flatnonzero(vh[first : r.right] <= hs_speed_frac * ref)
+            j = first + int(rest[0]) if rest.size else max(first, r.right)
             # the heel never came to rest inside its flat range: no heel strike, not a guess
             hs_i = j if j < r.right else -1
         if hs_i >= 0 and r.right_open and t[r.right] - t[hs_i] < min_contact_s:
@@ -709,13 +974,16 @@ def foot_contacts(
                 continue
             j = q.right
             if use_vel:
-                while j < next_left - 1 and j < n - 1 and not (vt[j] > to_speed_frac * ref):
-                    j += 1
+                # the first sample from the lock on where the toe speed is up (or the limit)
+                stop = min(next_left - 1, n - 1)
+                with np.errstate(invalid="ignore"):
+                    rest = np.flatnonzero(vt[j:stop] > to_speed_frac * ref)
+                j = j + int(rest[0]) if rest.size else max(j, stop)
                 if not vt[j] > to_speed_frac * ref:
                     continue  # the toe never left inside this stride: no toe off
             to = float(t[j])
         pos = np.asarray(heel_prog[r.left : r.right + 1], dtype=float)
-        pos_med = float(np.nanmedian(pos)) if np.isfinite(pos).any() else float("nan")
+        pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")
         out.append(Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right])))
     return out
 

@@ -39,10 +39,92 @@ def _num(v: Any, ndigits: int = 3) -> float | None:
     return round(f, ndigits) if math.isfinite(f) else None
 
 
-def _vec(row: np.ndarray, ndigits: int) -> list[float] | None:
-    if not np.all(np.isfinite(row)):
-        return None
-    return [round(float(x), ndigits) for x in row]
+def round_array(a: np.ndarray, ndigits: int) -> np.ndarray:
+    """``a`` rounded exactly as Python's ``round(float(x), ndigits)`` rounds each value.
+
+    ``np.round`` scales, rounds and unscales, which can land on the other side of a tie that
+    the scaling made inexact; Python rounds the exact binary value. Both give the same double
+    except where the scaled value lies within rounding error of a half (or is huge), so those
+    few values, and only they, are rounded by Python. Non-finite values pass through.
+
+    a : (...) float. Returns (...) float64.
+    """
+    a = np.asarray(a, dtype=float)
+    scale = 10.0**ndigits
+    with np.errstate(invalid="ignore", over="ignore"):
+        y = a * scale
+        out = np.rint(y) / scale
+        tie = np.abs(y - np.floor(y) - 0.5) <= 1e-9 * (1.0 + np.abs(y))
+    doubt = np.flatnonzero((tie | ~(np.abs(a) < 1e12)) & np.isfinite(a))
+    if doubt.size:
+        flat = out.reshape(-1)
+        src = a.reshape(-1)
+        for i in doubt.tolist():
+            flat[i] = round(float(src[i]), ndigits)
+        out = flat.reshape(a.shape)
+    return np.where(np.isfinite(a), out, a)
+
+
+def _nums(x: np.ndarray, ndigits: int) -> list[float | None]:
+    """``[_num(v, ndigits) for v in x]`` for a 1-D array, vectorised."""
+    x = np.asarray(x, dtype=float)
+    ok = np.isfinite(x).tolist()
+    return [v if k else None for v, k in zip(round_array(x, ndigits).tolist(), ok, strict=True)]
+
+
+def _rows(a: np.ndarray, ndigits: int) -> list[dict[str, list[float] | None]]:
+    """(F, 20, D) -> per frame ``{marker name: rounded [D values], or None if any is not
+    finite}``, in ``MARKER_NAMES`` order."""
+    a = np.asarray(a, dtype=float)
+    ok = np.isfinite(a).all(axis=-1)
+    vals = round_array(np.where(ok[..., None], a, 0.0), ndigits).tolist()
+    for f, k in np.argwhere(~ok).tolist():
+        vals[f][k] = None
+    return [dict(zip(MARKER_NAMES, row, strict=True)) for row in vals]
+
+
+def frame_record(
+    index: int, time_s: float, position: np.ndarray, pixel: np.ndarray
+) -> dict[str, Any]:
+    """One entry of :func:`frame_records` (position (20, 3), pixel (20, 2)), for one frame
+    a plain loop is cheaper than the vectorised path; the values are the same."""
+
+    def row(r: list[float], ok: bool, nd: int) -> list[float] | None:
+        return [round(v, nd) for v in r] if ok else None
+
+    pos, pix = np.asarray(position, dtype=float), np.asarray(pixel, dtype=float)
+    ok_p = np.isfinite(pos).all(axis=1).tolist()
+    ok_x = np.isfinite(pix).all(axis=1).tolist()
+    return {
+        "index": int(index),
+        "time_s": _num(time_s, 4),
+        "markers": {
+            n: row(r, k, 1) for n, r, k in zip(MARKER_NAMES, pos.tolist(), ok_p, strict=True)
+        },
+        "pixels": {
+            n: row(r, k, 2) for n, r, k in zip(MARKER_NAMES, pix.tolist(), ok_x, strict=True)
+        },
+    }
+
+
+def frame_records(
+    frame_index: Sequence[int],
+    frame_time_s: np.ndarray,
+    positions: np.ndarray,
+    pixels: np.ndarray,
+) -> list[dict[str, Any]]:
+    """The ``frames`` entries of a results document (see :func:`build_results`).
+
+    Made once, they serve the trial's document and, sliced, those of its passes.
+    """
+    # vectorised rounding: element-by-element rounding dominated the cost of a document
+    times = _nums(np.asarray(frame_time_s, dtype=float), 4)
+    markers = _rows(positions, 1)
+    pix = _rows(pixels, 2)
+    return [
+        {"index": int(idx), "time_s": ts, "markers": m, "pixels": p}
+        for idx, ts, m, p in zip(frame_index, times, markers, pix, strict=True)
+    ]
 
 
 def _clean(obj: Any) -> Any:
@@ -76,6 +158,7 @@ def build_results(
     events: Sequence[Mapping[str, Any]],
     spatiotemporal: Mapping[str, Any],
     extra: Mapping[str, Any] | None = None,
+    records: Sequence[Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The results document of one trial.
 
@@ -88,16 +171,17 @@ def build_results(
     events : ``{"side", "kind", "time_s"}`` records. spatiotemporal : per side lists plus
         ``cadence_steps_per_min`` and ``speed_m_s`` (NaN allowed, written as null).
     extra : further top-level fields (additions to results.md version 1).
+    records : the ``frames`` entries when already made by :func:`frame_records` from these
+        arrays (shared, not copied: a document is read, not edited).
     """
-    frames = []
-    for i, (idx, ts) in enumerate(zip(frame_index, frame_time_s, strict=True)):
-        markers = {n: _vec(positions[i, k], 1) for k, n in enumerate(MARKER_NAMES)}
-        pix = {n: _vec(pixels[i, k], 2) for k, n in enumerate(MARKER_NAMES)}
-        frames.append({"index": int(idx), "time_s": _num(ts, 4), "markers": markers, "pixels": pix})
+    if records is None:
+        frames = frame_records(frame_index, frame_time_s, positions, pixels)
+    else:
+        frames = list(records)
     knee = {
-        "time_s": [_num(x, 4) for x in knee_time_s],
-        "L": [_num(x, 2) for x in knee_deg["L"]],
-        "R": [_num(x, 2) for x in knee_deg["R"]],
+        "time_s": _nums(knee_time_s, 4),
+        "L": _nums(knee_deg["L"], 2),
+        "R": _nums(knee_deg["R"], 2),
     }
     st: dict[str, Any] = {}
     for side in ("L", "R"):

@@ -29,8 +29,9 @@ missing; time axis 0; seconds; degrees. Ground truth is never read here.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -41,7 +42,7 @@ from gaitflow import gaitcore as gc
 from gaitflow.errors import StageError
 from gaitflow.markers import MARKER_INDEX
 from gaitflow.params import Param, ParamSet
-from gaitflow.results import build_results, empty_results
+from gaitflow.results import build_results, empty_results, frame_record, frame_records
 
 PARAMS = ParamSet(
     "gait",
@@ -124,7 +125,21 @@ PARAMS = ParamSet(
 )
 
 NOMINAL_PERIOD_S = 1 / 30
+CONTACT_PARAMS = (
+    "gamma",
+    "xi",
+    "phi",
+    "tau",
+    "max_born",
+    "refine",
+    "hs_speed_frac",
+    "to_speed_frac",
+)
 BODY = [f"{s}_{m}" for s in "LR" for m in ("SHO", "ASI", "PSI", "HIP", "THI")]
+KNEE_MARKERS = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HIP", "KNE", "ANK")]
+_HIP, _KNE, _ANK, _HEE, _TOE = (
+    [MARKER_INDEX[f"{s}_{m}"] for s in "LR"] for m in ("HIP", "KNE", "ANK", "HEE", "TOE")
+)
 
 
 @dataclass(frozen=True)
@@ -136,6 +151,10 @@ class FrameRec:
     pixel: np.ndarray  # (20, 2) px
     direction: int
     near_side: str
+    # its entry of a results document's ``frames``, made when it came (spreads the cost of
+    # a document over the frames), for the time ``record_t`` (checked when used)
+    record: Mapping[str, Any] | None = None
+    record_t: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -149,6 +168,10 @@ class GaitState:
     end: np.ndarray | None = None
     emitted: tuple[tuple[str, str, float], ...] = ()
     summarised_until: float = float("-inf")  # end of the last pass given its own summary
+    # results of the recent analyses by a digest of their exact inputs (see ``Memo``)
+    memo: tuple[Mapping[bytes, Any], ...] = ()
+    # the resampled markers of the last analysis of the whole trial (``analyse(series=)``)
+    series: Mapping[str, gc.Resampled] | None = None
 
 
 @dataclass(frozen=True)
@@ -167,6 +190,45 @@ class TrialAnalysis:
     phases: dict[str, list[dict[str, float]]]
     fps: float
     warnings: list[str]
+    memo: dict[bytes, Any] = field(default_factory=dict)  # what this analysis looked up
+    series: dict[str, gc.Resampled] = field(default_factory=dict)  # see ``analyse``
+
+
+MEMO_ANALYSES = 3  # a state keeps the memo entries of this many recent analyses
+
+
+class Memo:
+    """Results of pure computations keyed by a digest of their exact inputs.
+
+    The live analysis, the summary of a pass ended and the close of the trial repeat much of
+    each other's work on the same samples (the same frames at one step; a finished pass seen
+    again). A result is reused only when every input array is bit-for-bit the same, so the
+    outputs are exactly those of computing again. ``seen`` holds the entries of the recent
+    analyses (read only); ``used`` collects what this analysis looked up or made.
+    """
+
+    def __init__(self, seen: Sequence[Mapping[bytes, Any]] = ()) -> None:
+        self.seen = seen
+        self.used: dict[bytes, Any] = {}
+
+    @staticmethod
+    def key(*parts: Any) -> bytes:
+        h = hashlib.blake2b(digest_size=16)
+        for part in parts:
+            if isinstance(part, np.ndarray):
+                h.update(repr((part.dtype.str, part.shape)).encode())
+                h.update(np.ascontiguousarray(part).view(np.uint8))
+            else:
+                h.update(repr(part).encode())
+            h.update(b"|")
+        return h.digest()
+
+    def get(self, key: bytes) -> Any:
+        for m in (self.used, *self.seen):
+            if key in m:
+                self.used[key] = m[key]
+                return m[key]
+        return None
 
 
 def init(params: dict[str, Any]) -> GaitState:
@@ -180,7 +242,8 @@ def _times(frames: Sequence[FrameRec]) -> tuple[np.ndarray, np.ndarray, float]:
     if len(frames) >= 2:
         di = np.diff(idx)
         ok = di > 0
-        period = float(np.median(np.diff(ns)[ok] / di[ok])) / 1e9 if ok.any() else 1 / 30
+        # nanmedian_last: np.median's values (no NaN here) at a fraction of its cost
+        period = float(gc.nanmedian_last(np.diff(ns)[ok] / di[ok])) / 1e9 if ok.any() else 1 / 30
     else:
         period = 1 / 30
     if not period > 0:
@@ -216,11 +279,12 @@ def _near_side(frames: Sequence[FrameRec]) -> str:
     """The side facing the camera from geometry, when the labeller did not say: the side
     whose knee and ankle markers are nearer the camera centre (median distance)."""
     dist = {}
+    pos = np.stack([f.position for f in frames]) if frames else np.zeros((0, 20, 3))
     for s in "LR":
         idx = [MARKER_INDEX[f"{s}_KNE"], MARKER_INDEX[f"{s}_ANK"]]
-        d = np.array([np.linalg.norm(f.position[idx], axis=1) for f in frames]).ravel()
+        d = np.linalg.norm(pos[:, idx], axis=2).ravel()
         d = d[np.isfinite(d)]
-        dist[s] = float(np.median(d)) if d.size else float("nan")
+        dist[s] = float(gc.nanmedian_last(d)) if d.size else float("nan")
     if not all(np.isfinite(v) for v in dist.values()):
         return ""
     return "L" if dist["L"] < dist["R"] else "R"
@@ -228,11 +292,7 @@ def _near_side(frames: Sequence[FrameRec]) -> str:
 
 def _nanmedian_rows(x: np.ndarray) -> np.ndarray:
     """Median of each row ignoring NaN; NaN for an all-NaN row (without a warning)."""
-    out = np.full(x.shape[0], np.nan)
-    ok = np.isfinite(x).any(axis=1)
-    if ok.any():
-        out[ok] = np.nanmedian(x[ok], axis=1)
-    return out
+    return gc.nanmedian_last(x)
 
 
 def _body_progression(pq: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -244,8 +304,37 @@ def _body_progression(pq: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> n
     """
     prog = gc.progression(pq, origin, axis)  # (Q, 20)
     body = _nanmedian_rows(prog[:, [MARKER_INDEX[n] for n in BODY]])
-    anym = _nanmedian_rows(prog)
-    return np.where(np.isfinite(body), body, anym)
+    # rows are independent: the median of all markers only where the body is not seen
+    gone = np.flatnonzero(~np.isfinite(body))
+    body[gone] = _nanmedian_rows(prog[gone])
+    return body
+
+
+def _fill_resample(
+    t: np.ndarray,
+    pos: np.ndarray,
+    markers: Sequence[int],
+    p: Mapping[str, Any],
+    prev: gc.Resampled | None,
+    keep: bool,
+) -> tuple[np.ndarray, gc.Resampled | None]:
+    """Step 2: ``markers`` gap-filled and resampled, all at once.
+
+    t : (F,) s; pos : (F, M, 3) mm with M = len(markers). Returns (Q, 20, 3), NaN for the
+    markers not asked for and those seen in fewer than two frames, and, with ``keep``, the
+    :class:`gaitflow.gaitcore.Resampled` that lets the next analysis of the same growing
+    trial compute only what its new frames change (``prev`` is that of the last one).
+    """
+    res = gc.fill_resample_markers(t, pos, p["max_gap_s"], p["resample_hz"], prev)
+    cols = list(markers)
+    if cols == list(range(20)):
+        pq = res.xq.copy()  # kept in ``res``: the caller may blank markers in its copy
+    else:
+        pq = np.full((len(res.tq), 20, 3), np.nan)
+        pq[:, cols] = res.xq
+    few = np.count_nonzero(np.isfinite(pos[:, :, 0]), axis=0) < 2
+    pq[:, [k for k, f in zip(cols, few.tolist(), strict=True) if f]] = np.nan
+    return pq, (res if keep else None)
 
 
 def analyse(
@@ -255,38 +344,50 @@ def analyse(
     end: np.ndarray | None,
     params: Mapping[str, Any],
     live: bool = False,
+    memo: Sequence[Mapping[bytes, Any]] = (),
+    series: Mapping[str, gc.Resampled] | None = None,
 ) -> TrialAnalysis:
     """Analyse the frames of one trial (steps 1-6 of the module docstring).
 
-    ``live=True`` skips what live events do not need (knee angles, phases).
+    ``live=True`` skips what live events do not need (knee angles, phases, spatio-temporal
+    parameters, the side facing the camera: ``near_side`` is ""). ``memo``: the
+    ``memo`` of recent analyses (results reused only for bit-identical inputs). ``series``:
+    when given (``{}`` at first), ``frames`` are the whole trial so far and ``series`` the
+    resampled markers of its last analyses; every marker is then resampled (live too: the
+    next full analysis finds them) and the result kept in ``TrialAnalysis.series``.
     """
     p = params
+    cache = Memo(memo)
+    keep = series is not None
+    prev = series or {}
     idx, t, fps = _times(frames)
     warnings: list[str] = []
     pos = np.stack([f.position for f in frames]) if frames else np.zeros((0, 20, 3))
     pos = gc.smooth_depth(t, pos, p["depth_smooth_s"])
     nq = int(np.floor((t[-1] - t[0]) * p["resample_hz"] + 1e-6)) + 1 if len(t) else 0
     tq = t[0] + np.arange(nq) / p["resample_hz"] if len(t) else np.zeros(0)
-    pq = np.full((nq, 20, 3), np.nan)
-    need = range(20)
+    need = list(range(20))
     if live:
         need = [MARKER_INDEX[n] for n in (*BODY, "L_HEE", "R_HEE", "L_TOE", "R_TOE")]
-    for k in need:
-        if np.isfinite(pos[:, k, 0]).sum() < 2:
-            continue
-        filled, _ = gc.fill_gaps(t, pos[:, k], p["max_gap_s"])
-        _, pq[:, k] = gc.resample(t, filled, p["resample_hz"])
+    kept: dict[str, gc.Resampled] = {}
+    if keep:
+        pq, kept["markers"] = _fill_resample(t, pos, range(20), p, prev.get("markers"), keep)
+        # what live events do not use stays missing, as if never computed
+        pq[:, [k for k in range(20) if k not in need]] = np.nan
+    else:
+        pq, _ = _fill_resample(t, pos[:, need], need, p, None, keep)
+    if len(pq) != nq:
+        raise StageError("gait", f"resampled {len(pq)} samples where {nq} were expected")
     knee = {"L": np.full(nq, np.nan), "R": np.full(nq, np.nan)}
+    if live and "knee" in prev:
+        kept["knee"] = prev["knee"]  # for the next full analysis, which extends it
     if not live:
         # the knee markers alone go through the outlier filter: a dropped heel sample in a
         # fast swing would cost an event, a dropped knee sample only a filled gap
-        kidx = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HIP", "KNE", "ANK")]
-        kpos = gc.reject_outliers(pos[:, kidx], p["outlier_mm"])
-        pk = np.full((nq, 20, 3), np.nan)
-        for j, k in enumerate(kidx):
-            if np.isfinite(kpos[:, j, 0]).sum() >= 2:
-                filled, _ = gc.fill_gaps(t, kpos[:, j], p["max_gap_s"])
-                _, pk[:, k] = gc.resample(t, filled, p["resample_hz"])
+        kpos = gc.reject_outliers(pos[:, KNEE_MARKERS], p["outlier_mm"])
+        pk, knee_series = _fill_resample(t, kpos, KNEE_MARKERS, p, prev.get("knee"), keep)
+        if knee_series is not None:
+            kept["knee"] = knee_series
         for s in "LR":
             hip, kne, ank = (pk[:, MARKER_INDEX[f"{s}_{m}"]] for m in ("HIP", "KNE", "ANK"))
             knee[s] = gc.knee_flexion(hip, kne, ank)
@@ -314,31 +415,31 @@ def analyse(
                 heel = pq[sl, MARKER_INDEX[f"{s}_HEE"]]
                 toe = pq[sl, MARKER_INDEX[f"{s}_TOE"]]
                 prog_heel[s] = d * gc.progression(heel, origin, axis)
-                contacts[s] = gc.foot_contacts(
+                args = (
                     tq[sl],
                     gc.plane_height(heel, plane),
                     gc.plane_height(toe, plane),
                     prog_heel[s],
                     d * gc.progression(toe, origin, axis),
                     s,
-                    gamma=p["gamma"],
-                    xi=p["xi"],
-                    phi=p["phi"],
-                    tau=p["tau"],
-                    max_born=p["max_born"],
-                    refine=p["refine"],
-                    hs_speed_frac=p["hs_speed_frac"],
-                    to_speed_frac=p["to_speed_frac"],
                 )
-                tilt[s] = d * (
-                    gc.progression(pq[sl, MARKER_INDEX[f"{s}_KNE"]], origin, axis)
-                    - gc.progression(pq[sl, MARKER_INDEX[f"{s}_ANK"]], origin, axis)
-                )
-            in_pass = [
-                f for f, tt in zip(frames, t, strict=True) if tq[ps.start] <= tt <= tq[ps.stop - 1]
-            ]
-            sides = [f.near_side for f in in_pass if f.near_side]
-            near = max(set(sides), key=sides.count) if sides else _near_side(in_pass)
+                kw = {k: p[k] for k in CONTACT_PARAMS}
+                key = Memo.key("foot_contacts", *args, sorted(kw.items()))
+                found_c = cache.get(key)
+                if found_c is None:
+                    found_c = cache.used[key] = tuple(gc.foot_contacts(*args, **kw))
+                contacts[s] = list(found_c)
+                if not live:
+                    tilt[s] = d * (
+                        gc.progression(pq[sl, MARKER_INDEX[f"{s}_KNE"]], origin, axis)
+                        - gc.progression(pq[sl, MARKER_INDEX[f"{s}_ANK"]], origin, axis)
+                    )
+            near = ""  # live events do not need it
+            if not live:
+                inside = np.flatnonzero((tq[ps.start] <= t) & (t <= tq[ps.stop - 1])).tolist()
+                in_pass = [frames[i] for i in inside]
+                sides = [f.near_side for f in in_pass if f.near_side]
+                near = max(set(sides), key=sides.count) if sides else _near_side(in_pass)
             passes.append(
                 {
                     "direction": int(ps.direction),
@@ -349,8 +450,8 @@ def analyse(
             )
             contacts_all.append(contacts)
             events.extend(gc.events_from_contacts([c for s in "LR" for c in contacts[s]]))
-            pass_st.append(gc.spatiotemporal(contacts, 1.0, tq[sl], prog_heel))
             if not live:
+                pass_st.append(gc.spatiotemporal(contacts, 1.0, tq[sl], prog_heel))
                 ph = gc.gait_phases(contacts, tq[sl], prog_heel, tilt)
                 for s in "LR":
                     phases[s].extend(ph[s])
@@ -362,9 +463,22 @@ def analyse(
             if seen == 0
             else f"no walking pass found in {seen} frames with markers (standing or turning?)"
         )
-    st = gc.pool_spatiotemporal(contacts_all, pass_st)
+    st = {} if live else gc.pool_spatiotemporal(contacts_all, pass_st)
     return TrialAnalysis(
-        idx, t, tq, knee, passes, contacts_all, events, st, pass_st, phases, fps, warnings
+        idx,
+        t,
+        tq,
+        knee,
+        passes,
+        contacts_all,
+        events,
+        st,
+        pass_st,
+        phases,
+        fps,
+        warnings,
+        memo=cache.used,
+        series=kept if keep else {},
     )
 
 
@@ -373,8 +487,13 @@ def _document(
     a: TrialAnalysis,
     params: Mapping[str, Any],
     pass_index: int | None = None,
+    records: Sequence[Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """The results document of the whole trial, or of one pass of it."""
+    """The results document of the whole trial, or of one pass of it.
+
+    ``records``: the trial's frame records (``frame_records``), when several documents of
+    the trial are made at once.
+    """
     trial = frames[0].header.trial
     sel = np.ones(len(a.t), dtype=bool)
     selq = np.ones(len(a.tq), dtype=bool)
@@ -393,7 +512,8 @@ def _document(
             s: [c for c in a.phases[s] if ps["start_s"] <= c["initial_contact"] <= ps["end_s"]]
             for s in "LR"
         }
-    fr = [f for f, k in zip(frames, sel, strict=True) if k]
+    keep = np.flatnonzero(sel).tolist()
+    fr = [frames[i] for i in keep]
     pos = np.stack([f.position for f in fr]) if fr else np.zeros((0, 20, 3))
     pix = np.stack([f.pixel for f in fr]) if fr else np.zeros((0, 20, 2))
     warnings = list(a.warnings)
@@ -418,27 +538,23 @@ def _document(
             "warnings": warnings,
             "parameters": {k: v for k, v in params.items() if k != "session"},
         },
+        records=None if records is None else [records[i] for i in keep],
     )
 
 
 def _gait_frame(state: GaitState, rec: FrameRec, events: list) -> GaitFrame:
     pos = rec.position
-    knee = np.array(
-        [
-            gc.knee_flexion(
-                pos[MARKER_INDEX[f"{s}_HIP"]],
-                pos[MARKER_INDEX[f"{s}_KNE"]],
-                pos[MARKER_INDEX[f"{s}_ANK"]],
-            )
-            for s in "LR"
-        ],
-        dtype=float,
-    )
+    # both sides in one call each (rows are independent: the same values as one by one)
+    knee = gc.knee_flexion(pos[_HIP], pos[_KNE], pos[_ANK])
     heel = np.full(2, np.nan)
     toe = np.full(2, np.nan)
     if state.plane is not None:
-        heel = np.array([gc.plane_height(pos[MARKER_INDEX[f"{s}_HEE"]], state.plane) for s in "LR"])
-        toe = np.array([gc.plane_height(pos[MARKER_INDEX[f"{s}_TOE"]], state.plane) for s in "LR"])
+        # gc.plane_height's arithmetic, one point at a time (a (2, 3) product may round
+        # differently), with the plane normalised once
+        norm = np.linalg.norm(state.plane[:3])
+        n, off = state.plane[:3] / norm, state.plane[3] / norm
+        heel = np.array([pos[k] @ n + off for k in _HEE])
+        toe = np.array([pos[k] @ n + off for k in _TOE])
     # live time: from the trial's first frame at the nominal period (the summary uses the
     # measured one); recomputing it over the whole buffer would cost O(frames) per frame
     first = state.frames[0].header
@@ -455,7 +571,67 @@ def _gait_frame(state: GaitState, rec: FrameRec, events: list) -> GaitFrame:
 
 def _reset(state: GaitState) -> GaitState:
     """The state with no open trial (the parameters and calibration stay)."""
-    return dataclasses.replace(state, frames=(), emitted=(), summarised_until=float("-inf"))
+    return dataclasses.replace(
+        state, frames=(), emitted=(), summarised_until=float("-inf"), memo=(), series=None
+    )
+
+
+def _remember(state: GaitState, a: TrialAnalysis) -> tuple[Mapping[bytes, Any], ...]:
+    """The state's memo with the entries of analysis ``a`` first (bounded)."""
+    return (a.memo, *state.memo)[:MEMO_ANALYSES]
+
+
+def _series(state: GaitState) -> Mapping[str, gc.Resampled] | None:
+    """What an analysis of all the trial's frames may extend: the last one's resampled
+    markers; none for a trial longer than the live window (the series would be heavy)."""
+    if len(state.frames) > state.params["live_window_s"] * 30:
+        return None
+    return state.series if state.series is not None else {}
+
+
+def _with_record(rec: FrameRec, first: Header) -> FrameRec:
+    """``rec`` with its results record, timed as ``_times`` will most likely time it: from
+    the first frame at the nominal rate (exact when the trial starts at frame 0)."""
+    t0 = np.int64(first.capture_ns) - first.frame * NOMINAL_PERIOD_S * 1e9
+    t = float((np.int64(rec.header.capture_ns) - t0) / 1e9)
+    record = frame_record(rec.header.frame, t, rec.position, rec.pixel)
+    return FrameRec(rec.header, rec.position, rec.pixel, rec.direction, rec.near_side, record, t)
+
+
+def _frame_records(frames: Sequence[FrameRec], a: TrialAnalysis) -> list[Mapping[str, Any]]:
+    """The results records of all ``frames``: those made as the frames came where their time
+    is the analysis' time bit for bit, the others made now."""
+    made = np.array([f.record_t for f in frames], dtype=float)
+    stale = np.flatnonzero(
+        (made.view(np.int64) != a.t.view(np.int64))
+        | np.array([f.record is None for f in frames], dtype=bool)
+    ).tolist()
+    out = [f.record for f in frames]
+    if stale:
+        fresh = frame_records(
+            a.frame_index[stale].tolist(),
+            a.t[stale],
+            np.stack([frames[i].position for i in stale]),
+            np.stack([frames[i].pixel for i in stale]),
+        )
+        for i, r in zip(stale, fresh, strict=True):
+            out[i] = r
+    return out  # type: ignore[return-value]
+
+
+def _analyse_trial(state: GaitState) -> TrialAnalysis:
+    """The full analysis of the open trial's frames, with what earlier analyses kept."""
+    if state.plane is None:  # the callers check first: a trial without a floor is not analysed
+        raise StageError("gait", f"trial {state.frames[0].header.trial!r}: no floor plane")
+    return analyse(
+        state.frames,
+        state.plane,
+        state.start,
+        state.end,
+        state.params,
+        memo=state.memo,
+        series=_series(state),
+    )
 
 
 def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
@@ -468,24 +644,17 @@ def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
     if state.plane is None:
         doc = empty_results(state.params.get("session", ""), trial, 30.0, "no floor calibration")
         out.append(TrialSummary.follow(last, results=doc, warnings=doc["warnings"]))
-        return (
-            dataclasses.replace(state, frames=(), emitted=(), summarised_until=float("-inf")),
-            out,
-            [],
-        )
-    a = analyse(state.frames, state.plane, state.start, state.end, state.params)
-    doc = _document(state.frames, a, state.params)
+        return _reset(state), out, []
+    a = _analyse_trial(state)
+    records = _frame_records(state.frames, a)
+    doc = _document(state.frames, a, state.params, records=records)
     new_events = _new_events(state, a.events, float("inf"))
     for i, ps in enumerate(a.passes):
         if ps["end_s"] > state.summarised_until:
-            pdoc = _document(state.frames, a, state.params, i)
+            pdoc = _document(state.frames, a, state.params, i, records)
             out.append(TrialSummary.follow(last, results=pdoc, warnings=pdoc["warnings"]))
     out.append(TrialSummary.follow(last, results=doc, warnings=list(a.warnings)))
-    return (
-        dataclasses.replace(state, frames=(), emitted=(), summarised_until=float("-inf")),
-        out,
-        new_events,
-    )
+    return _reset(state), out, new_events
 
 
 def _new_events(state: GaitState, events: list[dict[str, Any]], before: float) -> list[list]:
@@ -534,6 +703,7 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
         int(msg.direction),
         str(msg.near_side),
     )
+    rec = _with_record(rec, state.frames[0].header if state.frames else h)
     state = dataclasses.replace(state, frames=(*state.frames, rec))
     events: list = []
     every = state.params["live_every"]
@@ -542,16 +712,36 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
         # live events from the recent frames only (times stay on the trial's clock), so the
         # cost per frame does not grow with the trial
         recent = state.frames[-int(state.params["live_window_s"] * 30) :]
-        a = analyse(recent, state.plane, state.start, state.end, state.params, live=True)
+        whole = len(recent) == n
+        a = analyse(
+            recent,
+            state.plane,
+            state.start,
+            state.end,
+            state.params,
+            live=True,
+            memo=state.memo,
+            series=_series(state) if whole else None,
+        )
         now = float(a.t[-1])
         events = _new_events(state, a.events, now - state.params["live_delay_s"])
-        state = dataclasses.replace(state, emitted=state.emitted + tuple(map(tuple, events)))
+        state = dataclasses.replace(
+            state,
+            emitted=state.emitted + tuple(map(tuple, events)),
+            memo=_remember(state, a),
+            series=a.series if whole else None,
+        )
         # a pass that ended well before now is complete: summarise it (once)
         if any(state.summarised_until < ps["end_s"] < now - 1.0 for ps in a.passes):
-            full = analyse(state.frames, state.plane, state.start, state.end, state.params)
+            full = _analyse_trial(state)
+            state = dataclasses.replace(
+                state, memo=_remember(state, full), series=full.series or None
+            )
             for i, ps in enumerate(full.passes):
                 if state.summarised_until < ps["end_s"] < now - 1.0:
-                    pdoc = _document(state.frames, full, state.params, i)
+                    pdoc = _document(
+                        state.frames, full, state.params, i, _frame_records(state.frames, full)
+                    )
                     out.append(TrialSummary.follow(h, results=pdoc, warnings=pdoc["warnings"]))
                     state = dataclasses.replace(state, summarised_until=ps["end_s"])
     if h.last:
