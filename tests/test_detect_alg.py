@@ -273,3 +273,146 @@ def test_separate_markers_are_not_split() -> None:
 
 def test_split_is_off_by_default() -> None:
     assert detect.PARAMS.resolve({})["split_merged"] is False
+
+
+# Splitting blobs that hold two separate bright cores (``split_cores``).
+
+
+def streak(img: np.ndarray, u0: float, v0: float, du: float, dv: float, radius: float,
+           gain: float, samples: int = 8) -> None:  # fmt: skip
+    """A motion-blurred disc: ``samples`` discs from (u0, v0) to (u0+du, v0+dv), averaged."""
+    acc = np.zeros_like(img)
+    for t in np.linspace(0.0, 1.0, samples):
+        disc(acc, u0 + t * du, v0 + t * dv, radius, gain / samples)
+    img += acc
+
+
+def split_run(img: np.ndarray, n: int, w: float = 12000.0, **kw) -> detect.Detection:
+    p = detect.PARAMS.resolve({"n": n, "split_cores": True, **kw})
+    return detect.detect_frame(u16(img), w, 2.5, (), p)
+
+
+@pytest.mark.parametrize(
+    "gap, gain, w",
+    [
+        (3.8, 3 * 65535.0, 45000.0),
+        (4.2, 3 * 65535.0, 45000.0),
+        (4.6, 3 * 65535.0, 45000.0),
+        (5.0, 3 * 65535.0, 30000.0),
+        (4.6, 50000.0, 12000.0),
+    ],
+)
+def test_touching_markers_are_split_near_each_centre(gap: float, gain: float, w: float) -> None:
+    # Two markers (radius 1.9 px) whose rims touch (heel and ankle): saturated, joined at a
+    # threshold near 3/4 of full scale by a neck 1-3 px wide (first four cases: the widest,
+    # diagonal, needs the 3x3 erosion), or unsaturated, joined through an intensity valley.
+    img = frame(noise=10.0, seed=5)
+    pair = [(60.3, 50.2), (60.3 + gap * 0.8, 50.2 + gap * 0.6)]
+    for u, v in pair:
+        disc(img, u, v, 1.9, gain)
+    singles = [(20.4, 20.7), (120.6, 90.1)]
+    for u, v in singles:
+        disc(img, u, v, 1.9, gain)
+    off = split_run(img, 3, w, split_cores=False)
+    assert off.blobs.count == 3  # the pair is one blob
+    on = split_run(img, 3, w)
+    assert on.blobs.count == 4
+    err = nearest(on.centroid, pair + singles)
+    assert err.max() < 0.35, err
+    # Single markers keep their Alg. 2 statistics exactly.
+    for c in off.centroid[nearest(off.centroid, singles, axis=1) < 0.5]:
+        assert np.min(np.hypot(*(on.centroid - c).T)) == 0.0
+
+
+@pytest.mark.parametrize(
+    "du, dv, radius", [(6.0, 0.0, 1.7), (4.5, 4.5, 1.7), (-3.0, 5.5, 2.2), (9.0, 3.0, 2.6)]
+)
+def test_motion_blurred_single_marker_is_not_split(du: float, dv: float, radius: float) -> None:
+    for gain in (3 * 65535.0, 45000.0):
+        img = frame(noise=12.0, seed=7)
+        streak(img, 70.2, 60.7, du, dv, radius, gain)
+        det = split_run(img, 1)
+        assert det.blobs.count == 1, (du, dv, radius, gain)
+
+
+def test_bright_line_is_not_split() -> None:
+    # Reflective tape: a long thin band with a ripple along it has several "cores" but is
+    # not a compact group of markers (area / (pi r_r^2) far below split_min_fill).
+    img = frame(noise=12.0, seed=8)
+    cc = np.arange(20, 140)
+    img[60:63, 20:140] += 30000.0 + 6000.0 * np.sin(cc / 6.0)[None, :]
+    disc(img, 40.2, 20.3, 2.0, 3 * 65535.0)
+    disc(img, 90.7, 100.4, 2.0, 3 * 65535.0)
+    for w in (12000.0, 28000.0):
+        off = split_run(img, 3, w, split_cores=False)
+        on = split_run(img, 3, w)
+        assert on.blobs.count == off.blobs.count
+        np.testing.assert_array_equal(on.centroid, off.centroid)
+
+
+def test_split_cores_is_off_by_default() -> None:
+    assert detect.PARAMS.resolve({})["split_cores"] is False
+
+
+def test_roi_with_overlapping_group_boxes_matches_full_frame() -> None:
+    # An L-shaped group's bounding box holds another group's tiles: boxes are merged, and
+    # components, centroids and radii equal the full frame's.
+    img = frame((96, 128), noise=12.0, seed=9)
+    img[8:60, 8:12] = 40000.0  # vertical bar of the L
+    img[56:60, 8:90] = 40000.0  # horizontal bar
+    for u, v in [(40.3, 30.6), (70.8, 20.1), (100.2, 80.7)]:
+        disc(img, u, v, 2.3, 3 * 65535.0)
+    ir = u16(img)
+    roi = detect.compact_roi(ir, 2000.0)
+    full = detect.Roi(ir, np.zeros(ir.shape, np.int32), np.zeros(1, np.intp),
+                      np.zeros(1, np.intp), 2000.0)  # fmt: skip
+    for e in (2000.0, 30000.0, 50000.0):
+        a = detect.components(roi, e, extent=True)
+        b = detect.components(full, e, extent=True)
+        assert a.count == b.count
+        ia, ib = np.lexsort(a.centroid.T), np.lexsort(b.centroid.T)
+        for name in ("centroid", "marker_radius", "region_radius", "mean_ir", "area", "box"):
+            np.testing.assert_allclose(getattr(a, name)[ia], getattr(b, name)[ib], atol=1e-9)
+
+
+def test_alg1_alternating_blob_sets_stop_before_the_cap() -> None:
+    # Markers of mixed brightness: step 5 raises e_d until fewer than n blobs remain, step 6
+    # lowers it until more than n appear, and so on. A repeated blob set ends the loop.
+    rng = np.random.default_rng(0)
+    img = frame((80, 120), noise=10.0, seed=0)
+    k = int(rng.integers(3, 9))
+    for i in range(k):
+        u, v = 10 + (i % 4) * 28 + rng.random(), 15 + (i // 4) * 35 + rng.random()
+        disc(img, u, v, rng.uniform(1.0, 3.0), rng.uniform(8000, 80000))
+    ir = u16(img)
+    capped = detect.detect_frame(ir, 5000.0, 2.0, (), params(n=4, max_iterations=100))
+    assert capped.iterations < 10
+    det = detect.detect_frame(ir, 5000.0, 2.0, (), params(n=4))
+    assert det.iterations == capped.iterations
+    assert abs(det.blobs.count - 4) <= 1
+
+
+@pytest.mark.parametrize("kind", ["zero", "saturated", "300 blobs", "300 touching pairs"])
+def test_bad_input_with_splitting_is_bounded(kind: str) -> None:
+    img = np.full((424, 512), 500.0)
+    if kind == "zero":
+        img[:] = 0.0
+    elif kind == "saturated":
+        img[:] = 65535.0
+    else:
+        rr, cc = np.mgrid[0:20, 0:15]
+        for y, x in zip(10 + rr.ravel() * 20, 10 + cc.ravel() * 33, strict=True):
+            img[y - 1 : y + 2, x - 1 : x + 2] = 65535
+            if kind == "300 touching pairs":  # a second 3x3 marker touching diagonally
+                img[y + 2 : y + 5, x + 2 : x + 5] = 65535
+    st = detect.init(params(split_cores=True, split_merged=True))
+    t = time.perf_counter()
+    _, (out,) = detect.step(st, {"clean": clean_msg(u16(img))})
+    dt = time.perf_counter() - t
+    assert dt < 2.0
+    assert out.centroid.shape[0] <= 64  # max_blobs
+    if kind in ("zero", "saturated"):
+        assert out.status == "empty" and out.centroid.shape == (0, 2)
+    else:
+        assert out.status == "too-many"
+        assert np.isfinite(out.centroid).all()

@@ -247,14 +247,23 @@ def mid_exposure_pixels(frames: list, lag: float) -> list[np.ndarray]:
 
 
 def run_stages(
-    frames: list, method: str, score: Score, gate: float, refine: bool = False, split: bool = False
+    frames: list,
+    method: str,
+    score: Score,
+    gate: float,
+    refine: bool = False,
+    split: bool = False,
+    cores: bool = False,
 ) -> None:
     """Run clean -> detect -> locate cores on rendered frames and score them."""
     from gaitflow.stages import clean, detect, locate
 
     specs = {
         "clean": (clean.SPEC, {}),
-        "detect": (detect.SPEC, {"method": method, "refine": refine, "split_merged": split}),
+        "detect": (
+            detect.SPEC,
+            {"method": method, "refine": refine, "split_merged": split, "split_cores": cores},
+        ),
         "locate": (locate.SPEC, {}),
     }
     state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
@@ -293,7 +302,7 @@ def bench(
     """Render, run and score; returns {variant: {method: figures}}."""
     cv2.setNumThreads(1)  # "on one core"
     methods = ["adaptive", "static"]
-    methods += ["adaptive-refine", "adaptive-split"] if refine_ablation else []
+    methods += ["adaptive-refine", "adaptive-split", "adaptive-cores"] if refine_ablation else []
     results: dict[str, Any] = {}
     for var in variants:
         scores = {m: Score() for m in methods}
@@ -308,6 +317,7 @@ def bench(
                     gate,
                     refine=extra == "refine",
                     split=extra == "split",
+                    cores=extra == "cores",
                 )
         results[var] = {m: summarise(s) for m, s in scores.items()}
     return results
@@ -486,7 +496,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ablation",
         action="store_true",
-        help="also run adaptive with the sub-pixel refinement and with merged-blob splitting",
+        help="also run adaptive with the sub-pixel refinement and with merged-blob splitting "
+        "(split_merged, and split_cores)",
     )
     add_json_flag(p)
     p.set_defaults(func=_run)
