@@ -98,9 +98,9 @@ def test_positions_backproject_and_marker_centre_offset() -> None:
     np.testing.assert_allclose(pos0[:, 0], ref, atol=1e-9)
     np.testing.assert_allclose(pos0[:, 2], ref, atol=1e-9)
     z1, pos1 = locate.locate_all(d, cen, rr, cam, params(marker_diameter_mm=25.0))
-    # The centre is one radius nearer the camera along the same ray.
+    # The centre is one radius plus the base height (2 mm) nearer along the same ray.
     shrink = np.linalg.norm(pos0, axis=2) - np.linalg.norm(pos1, axis=2)
-    np.testing.assert_allclose(shrink, 12.5, atol=1e-9)
+    np.testing.assert_allclose(shrink, 12.5 + 2.0, atol=1e-9)
     assert (z1 < 2500.0).all()
 
 
@@ -160,12 +160,12 @@ def test_marker_diameter_from_session_camera_json_unless_set() -> None:
     )
     _, (out,) = locate.step(locate.init(params()), {"clean": cf, "blobs": bl})
     shrink = np.linalg.norm(raw_pt.position[0, 0]) - np.linalg.norm(out.position[0, 0])
-    assert shrink == pytest.approx(15.0)
+    assert shrink == pytest.approx(15.0 + 2.0)
     _, (out2,) = locate.step(
         locate.init(params(marker_diameter_mm=20.0)), {"clean": cf, "blobs": bl}
     )
     shrink2 = np.linalg.norm(raw_pt.position[0, 0]) - np.linalg.norm(out2.position[0, 0])
-    assert shrink2 == pytest.approx(10.0)
+    assert shrink2 == pytest.approx(10.0 + 2.0)
     # A flat mapping of Camera fields is accepted as the intrinsics override too.
     st = locate.init(params(camera={"fx": 500.0, "fy": 500.0}))
     assert st.camera.fx == 500.0

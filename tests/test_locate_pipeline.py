@@ -58,8 +58,8 @@ def test_graph_runs_clean_detect_locate() -> None:
     for u, v in MARKERS:
         # Hard-edged literal discs: pixel-quantised, so only wiring-level accuracy here.
         assert np.min(np.hypot(m.centroid[:, 0] - u, m.centroid[:, 1] - v)) < 0.3
-    # Plane at 2600 mm; the published point is the marker centre, 12.5 mm nearer.
-    assert np.all(np.abs(m.depth[:, 0] - (2600.0 - 12.5)) < 3.0)
+    # Plane at 2600 mm; the published point is the marker centre, 12.5 + 2 (base) mm nearer.
+    assert np.all(np.abs(m.depth[:, 0] - (2600.0 - 14.5)) < 3.0)
 
 
 def test_bench_scoring_on_literal_messages() -> None:
