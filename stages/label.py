@@ -9,12 +9,13 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 
 1. every blob is mapped to the floor frame under each cluster mode: a along the walking
    line (toward +u), e horizontal away from the camera, h height above the floor (mm);
-2. the shoulder (SHO) is predicted by a constant-velocity Kalman filter (filterpy,
+2. the shoulder (SHO) is predicted by a constant-velocity Kalman filter (filterpy's equations,
    position + velocity in 3D) and taken as the shoulder-height blob nearest the prediction
    (or a clearly nearer-to-camera one at the same place: the near shoulder); without one
    the prediction stands in for up to ``max_missed`` frames (steps 1-3); missing frames
-   count as misses and a track back after 3 restarts. The first shoulder is a
-   shoulder-height blob with body markers below it and nearer the camera than they are;
+   count as misses and a track back after 3 restarts; a blob ``far_sho_mm`` deeper than the
+   track (the far shoulder) never continues it. The first shoulder is a shoulder-height
+   blob with body markers below it and nearer the camera than they are;
 3. the walking direction is the sign of the shoulder's velocity along a (first sight:
    toward the far end of the walkway; then ``flip_frames`` frames against it to change).
    The side facing the camera follows (walking toward +u shows the right side). A change of
@@ -36,7 +37,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    track); ambiguity is judged on the joint hypotheses; a lone near foot marker needs a
    fresh track. Then the limb (KNE: thigh and shank lengths to HIP and ANK; THI and TIB
    on their segments, ``_on_segment``; near knee and thigh at the near leg's depth, far
-   knee and thigh, deeper, absorb their blobs). Segment lengths more than 25 % off the
+   knee and thigh, deeper, absorb their blobs; the pelvis's hip label is a slot too, and
+   dropped when the leg below contradicts it; the blob on the knee's fresh track is kept
+   from the foot search). Segment lengths more than 25 % off the
    stature-scaled template fall back to it (a static labelling error);
 6. a label is left NaN rather than guessed when another blob fits it almost as well
    (``ambiguity``) or it breaks a track gate or a rigid distance: an occluded marker gives a
@@ -53,12 +56,11 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from gaitflow.schemas import CalibrationRecord, LabelledMarkers, Markers3D, Message, SubjectModel
 from gaitflow.stages.base import StageSpec
 from gaitflow.stages.model import (
@@ -123,6 +125,15 @@ PARAMS = ParamSet(
             0.0,
         ),
         Param(
+            "far_sho_mm",
+            float,
+            80.0,
+            "mm",
+            "a shoulder-height blob this much deeper than the shoulder track is the far"
+            " shoulder, never the track's",
+            0.0,
+        ),
+        Param(
             "camera_height_mm",
             float,
             800.0,
@@ -139,7 +150,8 @@ NEAR_FOOT = ("TIB", "ANK", "HEE", "TOE")
 # relative deviation beyond which the template's length is used instead.
 SEGMENTS = (("HIP", "KNE"), ("KNE", "ANK"), ("ANK", "HEE"), ("ANK", "TOE"), ("HEE", "TOE"))
 PLAUSIBLE = 0.25
-PELVIS = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "PSI"), ("far", "ASI"))
+# The pelvis search's slots (_pelvis).
+PELVIS = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "ASI"), ("far", "PSI"))
 MISS_COST = 9.0  # a missing label costs as much as a 3-sigma fit
 
 
@@ -160,6 +172,9 @@ class Geometry:
     offsets: np.ndarray
     dist: np.ndarray
     sho_h: float
+    # Sagittal distances between the pelvis search's slots (near PSI, HIP, ASI, far ASI,
+    # PSI), by slot pair: see _pelvis.
+    pelvis_d0: Mapping[tuple[int, int], float] = field(default_factory=dict)
 
     @classmethod
     def from_model(cls, model: SubjectModel | None) -> Geometry:
@@ -203,7 +218,13 @@ class Geometry:
             dt = float(np.linalg.norm(t0[ia] - t0[ib]))
             if not abs(dist[ia, ib] / dt - 1.0) <= PLAUSIBLE:
                 dist[ia, ib] = dist[ib, ia] = dt
-        return cls(offsets, dist, sho_h)
+        fh = [0, 2]  # sagittal (f, h), as in _rigid
+        off = [offsets[0 if sd == "near" else 1, SITES.index(s)] for sd, s in PELVIS]
+        pelvis_d0 = {
+            (a, b): float(np.linalg.norm(off[a][fh] - off[b][fh]))
+            for a, b in ((0, 1), (1, 2), (0, 2), (2, 3), (0, 4), (3, 4))
+        }
+        return cls(offsets, dist, sho_h, pelvis_d0)
 
     def d(self, a: str, b: str) -> float:
         return float(self.dist[SITES.index(a), SITES.index(b)])
@@ -216,22 +237,48 @@ class Geometry:
 # --- the shoulder Kalman filter ----------------------------------------------------------
 
 
-def _kf(x: np.ndarray, P: np.ndarray, dt: float) -> KalmanFilter:
-    """Constant-velocity KF over (a, e, h, va, ve, vh), mm and mm/s."""
-    kf = KalmanFilter(dim_x=6, dim_z=3)
-    kf.F = np.eye(6)
-    kf.F[:3, 3:] = dt * np.eye(3)
-    kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
-    kf.R = np.eye(3) * 10.0**2
+@lru_cache(maxsize=16)
+def _kf_model(dt: float) -> tuple[np.ndarray, ...]:
+    """Constant-velocity model over (a, e, h, va, ve, vh), mm and mm/s, for a step of dt s.
+
+    Returns read-only (F, Q, H, R, I): transition, white-acceleration process noise,
+    measurement (position), measurement noise, identity.
+    """
+    F = np.eye(6)
+    F[:3, 3:] = dt * np.eye(3)
+    H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    R = np.eye(3) * 10.0**2
     q = 4000.0**2  # white acceleration (mm/s^2)^2: gait sways the trunk ~ 1-4 m/s^2
     g = np.array([0.5 * dt * dt, dt])
     Q1 = np.outer(g, g) * q
-    kf.Q = np.zeros((6, 6))
+    Q = np.zeros((6, 6))
     for i in range(3):
-        kf.Q[np.ix_([i, i + 3], [i, i + 3])] = Q1
-    kf.x = x.copy()
-    kf.P = P.copy()
-    return kf
+        Q[np.ix_([i, i + 3], [i, i + 3])] = Q1
+    mats = (F, Q, H, R, np.eye(6))
+    for m in mats:
+        m.flags.writeable = False
+    return mats
+
+
+def _kf_predict(x: np.ndarray, P: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman prediction (6,), (6, 6): filterpy's ``KalmanFilter.predict``, same arithmetic."""
+    F, Q, _, _, _ = _kf_model(dt)
+    return np.dot(F, x), np.dot(np.dot(F, P), F.T) + Q
+
+
+def _kf_update(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update with a position z (3,): filterpy's ``KalmanFilter.update`` (Joseph
+    form), same arithmetic, without building a filter object per frame."""
+    _, _, H, R, eye = _kf_model(dt)
+    y = z - np.dot(H, x)
+    PHT = np.dot(P, H.T)
+    S = np.dot(H, PHT) + R
+    K = np.dot(PHT, np.linalg.inv(S))
+    x = x + np.dot(K, y)
+    I_KH = eye - np.dot(K, H)
+    return x, np.dot(np.dot(I_KH, P), I_KH.T) + np.dot(np.dot(K, R), K.T)
 
 
 # --- state -------------------------------------------------------------------------------
@@ -261,6 +308,9 @@ class LabelState:
     labelled: int = 0
     foot: np.ndarray | None = None  # (3,) learned ANK-HEE, ANK-TOE, HEE-TOE, mm
     foot_n: int = 0
+    # (calibration, model, FloorFrame, Geometry): the side inputs the floor frame and the
+    # geometry were derived from, and those (derived once per side input, not per frame).
+    sides: tuple[Any, Any, FloorFrame, Geometry] | None = None
 
 
 def init(params: dict[str, Any]) -> LabelState:
@@ -285,29 +335,42 @@ def _name(side: str, site: str, near: str) -> str:
     return f"{near if side == 'near' else far}_{site}"
 
 
-@lru_cache(maxsize=32)
+@lru_cache(maxsize=64)
 def _tuples(k: int, r: int) -> np.ndarray:
-    """All r-tuples over k candidates plus 'missing' (index k), distinct when present."""
-    rows = [
-        t
-        for t in itertools.product(range(k + 1), repeat=r)
-        if len({i for i in t if i < k}) == sum(1 for i in t if i < k)
-    ]
-    return np.array(rows, dtype=np.int64).reshape(-1, r)
+    """All r-tuples over k candidates plus 'missing' (index k), distinct when present.
+
+    Rows in lexicographic order (as ``itertools.product``); (M, r) int64, read-only.
+    """
+    # np.indices enumerates the product in lexicographic order; a pair of slots may share
+    # only the 'missing' index.
+    T = np.indices((k + 1,) * r).reshape(r, -1).T
+    ok = np.ones(len(T), bool)
+    for a, b in itertools.combinations(range(r), 2):
+        ok &= (T[:, a] != T[:, b]) | (T[:, a] == k)
+    out = np.ascontiguousarray(T[ok], dtype=np.int64)
+    out.flags.writeable = False
+    return out
+
+
+def _side(p1: np.ndarray, p2: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Signed sagittal distance (mm) of points q from the lines p1 -> p2; arrays (M, 3)."""
+    p1, p2, q = p1[:, [0, 2]], p2[:, [0, 2]], q[:, [0, 2]]
+    e = p2 - p1
+    n = np.linalg.norm(e, axis=1) + 1e-9
+    return (e[:, 0] * (q[:, 1] - p1[:, 1]) - e[:, 1] * (q[:, 0] - p1[:, 0])) / n
+
+
+def _outside(s1: np.ndarray, s2: np.ndarray, s3: np.ndarray, so: np.ndarray) -> np.ndarray:
+    """Distance (mm, 0 inside) of a point outside a triangle (a, b, c), from its signed
+    distances to the edges a-b, b-c, c-a (s1, s2, s3) and that of c to a-b (so)."""
+    orient = np.sign(so)
+    d = np.minimum(np.minimum(s1 * orient, s2 * orient), s3 * orient)
+    return np.maximum(-d, 0.0)
 
 
 def _triangle_outside(a: np.ndarray, b: np.ndarray, c: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Distance (mm, 0 inside) of 2D points p outside triangles (a, b, c); arrays (M, 2)."""
-
-    def side(p1: np.ndarray, p2: np.ndarray, q: np.ndarray) -> np.ndarray:
-        e = p2 - p1
-        n = np.linalg.norm(e, axis=1) + 1e-9
-        return (e[:, 0] * (q[:, 1] - p1[:, 1]) - e[:, 1] * (q[:, 0] - p1[:, 0])) / n
-
-    s1, s2, s3 = side(a, b, p), side(b, c, p), side(c, a, p)
-    orient = np.sign(side(a, b, c))
-    d = np.minimum(np.minimum(s1 * orient, s2 * orient), s3 * orient)
-    return np.maximum(-d, 0.0)
+    """Sagittal distance (mm, 0 inside) of points p outside triangles (a, b, c); (M, 3)."""
+    return _outside(_side(a, b, p), _side(b, c, p), _side(c, a, p), _side(a, b, c))
 
 
 @dataclass
@@ -336,6 +399,10 @@ class _Frame:
 MODE_OF = np.array(
     [0 if n[2:] in ("ASI", "PSI") else CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES]
 )
+
+
+# Each marker's own cluster mode (the output's).
+OWN_MODE = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
 
 
 def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
@@ -382,32 +449,94 @@ def _on_segment(pa: np.ndarray, pw: np.ndarray, pb: np.ndarray, sig: float = 25.
     return (perp**2 + over**2) / sig**2
 
 
-def _slots(fr: _Frame, idx: list[int], cand: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """(M, r, 3) positions of tuples T (M, r) over ``cand`` (+ missing), per slot's mode."""
-    out = np.full((*T.shape, 3), np.nan)
-    for k, i in enumerate(idx):
-        P = np.vstack([fr.pos(i)[cand], np.full((1, 3), np.nan)])
-        out[:, k] = P[T[:, k]]
-    return out
-
-
-def _base_cost(fr: _Frame, idx: list[int], cand: np.ndarray, T: np.ndarray) -> np.ndarray:
-    U = np.vstack([np.append(_unary(fr, i, cand), MISS_COST) for i in idx])
-    return U[np.arange(len(idx)), T].sum(axis=1)
+def _base_cost(U: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(M,) summed unary cost of tuples T (M, r), from U (r, K + 1) (last column: missing)."""
+    return U[np.arange(U.shape[0]), T].sum(axis=1)
 
 
 def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float) -> list[bool]:
     """Per slot of the best tuple ``m``: is every tuple giving the slot another blob clearly
     worse (by ``margin``)? A label that could as well be another blob is left out."""
-    keep = []
-    for k in range(T.shape[1]):
-        if T[m, k] >= K:
-            keep.append(False)
-            continue
-        other = (T[:, k] != T[m, k]) & (T[:, k] < K)
-        alt = float(cost[other].min()) if other.any() else np.inf
-        keep.append(alt - float(cost[m]) >= margin)
-    return keep
+    other = (T[m] != T) & (T < K)  # (M, r): the slot holds another blob
+    alt = np.where(other, cost[:, None], np.inf).min(axis=0)
+    return ((T[m] < K) & (alt - cost[m] >= margin)).tolist()
+
+
+class _Hyp:
+    """Joint hypotheses of one exhaustive search (steps 5-10).
+
+    Every assignment ``T`` (M, r) of the candidate blobs ``cand`` (K,) to the markers ``idx``
+    (index K = missing; ``_tuples``). The hard rules come first (:meth:`forbid`); only the
+    hypotheses they leave alive, ``rows`` (A,), are scored (:meth:`add`; cost ``c`` (A,),
+    from the summed unary cost on). A forbidden hypothesis would cost inf whatever else is
+    added, so this is the same as scoring all and setting inf. A term over some slots is
+    evaluated on every hypothesis at once (positions ``Q`` (M, r, 3), 0 where a slot is
+    missing) and counts (added, or forbids) only where all its slots hold a blob.
+    """
+
+    def __init__(self, fr: _Frame, idx: list[int], cand: np.ndarray) -> None:
+        self.K, self.r = len(cand), len(idx)
+        self.T = _tuples(self.K, self.r)
+        self.present = self.T < self.K
+        X = fr.qm[cand[:, None], MODE_OF[idx]]  # (K, r, 3) under each slot's mode
+        d = (X - fr.pred[idx]) / fr.sig[idx]
+        # (r, K + 1) unary cost (as _unary), last column: missing.
+        self.U = np.hstack([(d**2).sum(axis=2).T, np.full((self.r, 1), MISS_COST)])
+        X0 = np.concatenate([X, np.zeros((1, self.r, 3))])
+        self.Q = X0[self.T, np.arange(self.r)]  # (M, r, 3)
+        self._bad = np.zeros(len(self.T), bool)
+        self._rows: np.ndarray | None = None
+        self._c = np.zeros(0)
+        self._masks: dict[tuple[int, ...], np.ndarray] = {}
+
+    def _mask(self, slots: tuple[int, ...], present: np.ndarray) -> np.ndarray:
+        m = present[:, slots[0]]
+        for s in slots[1:]:
+            m = m & present[:, s]
+        return m
+
+    def forbid(self, slots: tuple[int, ...], ok: Any, where: np.ndarray | None = None) -> None:
+        """Hard rule: drop the hypotheses where every slot (and ``where`` (M,)) holds a blob
+        and ``ok(positions (M, 3) per slot)`` is False. Before any :meth:`add`."""
+        if self._rows is not None:
+            raise StageError(NAME, "a hard rule after a cost term (internal)")
+        m = self._mask(slots, self.present)
+        if where is not None:
+            m = m & where
+        self._bad |= m & ~ok(*(self.Q[:, s] for s in slots))
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(A,) the hypotheses the hard rules left."""
+        if self._rows is None:
+            self._rows = np.flatnonzero(~self._bad)
+            self.Qa, self.pa = self.Q[self._rows], self.present[self._rows]
+            self._c = _base_cost(self.U, self.T[self._rows])
+        return self._rows
+
+    @property
+    def c(self) -> np.ndarray:
+        """(A,) cost of the hypotheses alive (``rows``)."""
+        _ = self.rows
+        return self._c
+
+    def add(self, slots: tuple[int, ...], fn: Any, where: np.ndarray | None = None) -> None:
+        """c += fn(positions (A, 3) per slot) where every slot (and ``where`` (M,)) holds
+        a blob."""
+        rows = self.rows
+        if slots not in self._masks:
+            self._masks[slots] = self._mask(slots, self.pa)
+        m = self._masks[slots]
+        if where is not None:
+            m = m & where[rows]
+        self._c += np.where(m, fn(*(self.Qa[:, s] for s in slots)), 0.0)
+
+    @property
+    def cost(self) -> np.ndarray:
+        """(M,) cost of every hypothesis (inf = forbidden)."""
+        full = np.full(len(self.T), np.inf)
+        full[self.rows] = self.c
+        return full
 
 
 # --- the per-frame labelling ---------------------------------------------------------------
@@ -443,7 +572,7 @@ def label_frame(
     floor = fm[:, 0]
     ok = np.isfinite(floor).all(axis=1)
     assign = np.full(20, -1)
-    st = replace(st, frame=frame_idx, frames=st.frames + 1)
+    # (st.frame and st.frames are updated on the way out.)
     top = fm[:, CLUSTER_MODES.index("top")]
 
     # Steps 1-3: the shoulder (top mode).
@@ -457,14 +586,15 @@ def label_frame(
             replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
         )
     if st.sho_x is not None:
-        kf = _kf(st.sho_x, st.sho_cov, dt)
-        kf.predict()
+        kx, kP = _kf_predict(st.sho_x, st.sho_cov, dt)
         # The gate widens with misses, at most to twice its size: a shoulder that shows up
         # far from a coasting prediction is a new track (e.g. after a turn out of view).
         gate = p["sho_gate_mm"] * min(2.0, 1 + 0.25 * st.sho_missed)
-        cand = np.flatnonzero(band)
+        # Not a blob clearly deeper than the track: the far shoulder, which stays in view
+        # a few frames longer when the near one leaves the image at the end of a pass.
+        cand = np.flatnonzero(band & (top[:, 1] < kx[1] + p["far_sho_mm"]))
         if cand.size:
-            dist = np.hypot(top[cand, 0] - kf.x[0], top[cand, 1] - kf.x[1])
+            dist = np.hypot(top[cand, 0] - kx[0], top[cand, 1] - kx[1])
             j = int(np.argmin(dist))
             if dist[j] < gate:
                 sho_blob = int(cand[j])
@@ -476,7 +606,7 @@ def label_frame(
                 ]
                 if nearer.size:
                     sho_blob = int(nearer[np.argmin(top[nearer, 1])])
-                    kf.x[:3] = top[sho_blob]
+                    kx[:3] = top[sho_blob]
         if sho_blob >= 0 and st.sho_missed >= 3:
             # Back after a gap (out of view, turning): start afresh, the subject may have
             # turned round.
@@ -484,10 +614,10 @@ def label_frame(
                 replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
             )
         elif sho_blob >= 0:
-            kf.update(top[sho_blob])
-            st = replace(st, sho_x=kf.x.copy(), sho_cov=kf.P.copy(), sho_missed=0)
+            kx, kP = _kf_update(kx, kP, top[sho_blob], dt)
+            st = replace(st, sho_x=kx, sho_cov=kP, sho_missed=0)
         elif st.sho_missed < p["max_missed"]:
-            st = replace(st, sho_x=kf.x.copy(), sho_cov=kf.P.copy(), sho_missed=st.sho_missed + 1)
+            st = replace(st, sho_x=kx, sho_cov=kP, sho_missed=st.sho_missed + 1)
         else:
             st = _reset_tracks(
                 replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
@@ -495,7 +625,7 @@ def label_frame(
     if st.sho_x is None:
         sho_blob = _acquire_shoulder(top, ok, band, H)
         if sho_blob < 0:
-            return st, assign
+            return replace(st, frame=frame_idx, frames=st.frames + 1), assign
         x = np.concatenate([top[sho_blob], np.zeros(3)])
         P = np.diag([20.0**2] * 3 + [1500.0**2] * 3)
         st = _reset_tracks(replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0))
@@ -525,7 +655,6 @@ def label_frame(
     else:
         flips = 0
     walked = st.walked or abs(va) > p["dir_speed"]
-    st = replace(st, direction=direction, flip_count=flips, walked=walked)
     near = "R" if direction > 0 else "L"
     if sho_blob >= 0:
         assign[MARKER_INDEX[f"{near}_SHO"]] = sho_blob
@@ -561,16 +690,26 @@ def label_frame(
 
     # Track update (floor coords under each marker's own mode, un-oriented).
     last, vel, seen = st.last.copy(), st.vel.copy(), st.seen.copy()
-    for i in np.flatnonzero(assign >= 0):
-        cur = fm[assign[i], MODE_OF[i]]
-        age = frame_idx - seen[i]
-        if 0 < age <= p["track_age"] + 1 and np.isfinite(last[i]).all():
-            vel[i] = (cur - last[i]) / age
-        else:
-            vel[i] = 0.0
-        last[i] = cur
-        seen[i] = frame_idx
-    st = replace(st, last=last, vel=vel, seen=seen, labelled=st.labelled + int((assign >= 0).sum()))
+    ii = np.flatnonzero(assign >= 0)
+    if ii.size:
+        cur = fm[assign[ii], MODE_OF[ii]]
+        age = frame_idx - seen[ii]
+        fresh = (age > 0) & (age <= p["track_age"] + 1) & np.isfinite(last[ii]).all(axis=1)
+        vel[ii] = np.where(fresh[:, None], (cur - last[ii]) / age[:, None], 0.0)
+        last[ii] = cur
+        seen[ii] = frame_idx
+    st = replace(
+        st,
+        frame=frame_idx,
+        frames=st.frames + 1,
+        direction=direction,
+        flip_count=flips,
+        walked=walked,
+        last=last,
+        vel=vel,
+        seen=seen,
+        labelled=st.labelled + int((assign >= 0).sum()),
+    )
     if st.direction:
         st = _learn_foot(st, fm, assign, geo, "R" if st.direction > 0 else "L")
     return st, assign
@@ -644,37 +783,47 @@ def _acquire_shoulder(floor: np.ndarray, ok: np.ndarray, band: np.ndarray, H: fl
     return max(c for c in cands if c[0] >= best - 1)[2]
 
 
+def _side_sites(near: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per marker (20,): its side (0 = near, 1 = far) and site index, and a sigma class."""
+    side = np.zeros(20, np.int64)
+    site = np.zeros(20, np.int64)
+    for k, sd in enumerate(("near", "far")):
+        for j, s in enumerate(SITES):
+            i = MARKER_INDEX[_name(sd, s, near)]
+            side[i], site[i] = k, j
+    names = np.array(SITES)[site]
+    cls = np.where(np.isin(names, ("ASI", "PSI")), 0, 2)
+    cls[np.isin(names, ("HIP", "SHO"))] = 1
+    return side, site, cls
+
+
+SIDE_SITES = {near: _side_sites(near) for near in ("R", "L")}
+# Model sigma (f, e, h) per class, as fractions of the shoulder height: ASI and PSI (the
+# trunk leans while walking, so the pelvis shifts along the walk relative to the shoulder;
+# depth on the pelvis silhouette is poor), HIP and SHO, the legs (they swing: along the
+# walk only the rough reach of a stride is known).
+MODEL_SIG = np.array([[0.12, 0.25, 0.03], [0.12, 0.08, 0.03], [0.3, 0.08, 0.1]])
+
+
 def _predictions(
     st: LabelState, geo: Geometry, sho: np.ndarray, near: str, direction: int, frame_idx: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-marker prediction (f, e, h) and sigma (20, 3): track if fresh, else the model."""
     p = st.params
     H = geo.sho_h
-    pred = np.full((20, 3), np.nan)
-    sig = np.full((20, 3), np.inf)
-    tracked = np.zeros(20, bool)
-    for side in ("near", "far"):
-        for site in SITES:
-            i = MARKER_INDEX[_name(side, site, near)]
-            off = geo.rel_sho(side, site)
-            pred[i] = (sho[0] + off[0], sho[1] + off[1], off[2])
-            if site in ("ASI", "PSI"):
-                # The trunk leans while walking (the pelvis shifts along the walk relative
-                # to the shoulder); depth on the pelvis silhouette is poor.
-                sig[i] = (0.12 * H, 0.25 * H, 0.03 * H)
-            elif site in ("HIP", "SHO"):
-                sig[i] = (0.12 * H, 0.08 * H, 0.03 * H)
-            else:
-                # Legs swing: along the walk only the rough reach of a stride is known.
-                sig[i] = (0.3 * H, 0.08 * H, 0.1 * H)
-            age = frame_idx - st.seen[i]
-            if 0 < age <= p["track_age"] + 1 and np.isfinite(st.last[i]).all():
-                t = st.last[i] + st.vel[i] * age
-                pred[i] = (direction * t[0], t[1], t[2])
-                s = 30.0 + 20.0 * age
-                se = 0.25 * H if site in ("ASI", "PSI") else s + 20.0
-                sig[i] = (s + 0.3 * abs(st.vel[i][0]), se, s)
-                tracked[i] = True
+    side, site, cls = SIDE_SITES[near]
+    off = geo.offsets[side, site]
+    pred = np.stack([sho[0] + off[:, 0], sho[1] + off[:, 1], off[:, 2]], axis=1)
+    sig = np.array([[f * H for f in row] for row in MODEL_SIG])[cls]
+    age = frame_idx - st.seen
+    tracked = (age > 0) & (age <= p["track_age"] + 1) & np.isfinite(st.last).all(axis=1)
+    if tracked.any():
+        a = age[tracked]
+        t = st.last[tracked] + st.vel[tracked] * a[:, None]
+        pred[tracked] = np.stack([direction * t[:, 0], t[:, 1], t[:, 2]], axis=1)
+        s = 30.0 + 20.0 * a
+        se = np.where(cls[tracked] == 0, 0.25 * H, s + 20.0)
+        sig[tracked] = np.stack([s + 0.3 * np.abs(st.vel[tracked][:, 0]), se, s], axis=1)
     return pred, sig, tracked
 
 
@@ -703,7 +852,7 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     near, far = fr.near, ("L" if fr.near == "R" else "R")
     # The far PSI takes part so that, when seen, it absorbs its blob instead of letting
     # another label take it; it is never published (see above).
-    names = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "ASI"), ("far", "PSI"))
+    names = PELVIS
     idx = [MARKER_INDEX[_name(sd, st, near)] for sd, st in names]
     # Near and far ASI differ mostly in depth, which the silhouette spoils: the far ASI
     # (and PSI) only absorb their blobs, and a near label that could as well be the far
@@ -717,28 +866,20 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
         hp = np.mean([geo.rel_sho("near", s)[2] for s in ("PSI", "HIP", "ASI")])
         cand = cand[np.argsort(np.abs(qb[cand, 2] - hp))[:7]]
         K = 7
-    T = _tuples(K, 5)
-    cost = _base_cost(fr, idx, cand, T)
-    pts = _slots(fr, idx, cand, T)
-    present = T < K
-    off = [geo.rel_sho(sd, st) for sd, st in names]
-    fh = [0, 2]  # sagittal (f, h), as in _rigid
-    for a, b in ((0, 1), (1, 2), (0, 2), (2, 3), (0, 4), (3, 4)):
-        d0 = float(np.linalg.norm(off[a][fh] - off[b][fh]))
-        both = present[:, a] & present[:, b]
-        cost[both] += _rigid(pts[both, a], pts[both, b], d0)
+    hy = _Hyp(fr, idx, cand)
     for a, b in ((0, 1), (1, 2), (0, 2)):
-        both = present[:, a] & present[:, b]
-        cost[both & ~(pts[:, a, 0] < pts[:, b, 0])] = np.inf
+        hy.forbid((a, b), lambda pa, pb: pa[:, 0] < pb[:, 0])
     for a in (0, 2):
-        both = present[:, a] & present[:, 1]
-        cost[both & ~(pts[:, 1, 2] < pts[:, a, 2])] = np.inf
+        hy.forbid((a, 1), lambda pa, ph: ph[:, 2] < pa[:, 2])
     # Near and far ASI both seen: the near one is the nearer (a relative test survives the
     # silhouette's depth bias better than the absolute depth does).
-    both = present[:, 2] & present[:, 3]
-    cost[both & ~(pts[:, 2, 1] < pts[:, 3, 1])] = np.inf
-    both = present[:, 4] & present[:, 3]
-    cost[both & ~(pts[:, 4, 0] < pts[:, 3, 0])] = np.inf
+    hy.forbid((2, 3), lambda pn, pf: pn[:, 1] < pf[:, 1])
+    hy.forbid((4, 3), lambda pp, pa: pp[:, 0] < pa[:, 0])
+    for a, b in ((0, 1), (1, 2), (0, 2), (2, 3), (0, 4), (3, 4)):
+        hy.add((a, b), lambda pa, pb, d0=geo.pelvis_d0[(a, b)]: _rigid(pa, pb, d0))
+    if hy.rows.size == 0:
+        return
+    T, cost = hy.T[hy.rows], hy.c
     m = int(np.argmin(cost))
     if not np.isfinite(cost[m]):
         return
@@ -767,7 +908,14 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         & (q[:, 1] - sho[1] > -0.3 * H)
         & (q[:, 1] - sho[1] < 0.5 * H)
     )
-    cand = np.flatnonzero(body & (q[:, 2] < 0.3 * H))
+    low = body & (q[:, 2] < 0.3 * H)
+    kne_i = MARKER_INDEX[f"{near}_KNE"]
+    if fr.tracked[kne_i] and fr.age[kne_i] == 1:
+        # The blob on the near knee's fresh track is kept for the limb search: a crouched
+        # knee sits as low as a tibia wand (the foot search comes first).
+        u = (((fr.pos(kne_i) - fr.pred[kne_i]) / fr.sig[kne_i]) ** 2).sum(axis=1)
+        low &= ~(u < 4.0)
+    cand = np.flatnonzero(low)
     if cand.size > 9:
         # The foot and shank markers are the lowest on the body.
         cand = cand[np.argsort(q[cand, 2])[:9]]
@@ -776,81 +924,82 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     tf = None
     if K:
         foot_idx = [MARKER_INDEX[f"{near}_{s}"] for s in NEAR_FOOT]
-        T = _tuples(K, 4)
-        cost = _base_cost(fr, foot_idx, cand, T)
-        pts = _slots(fr, foot_idx, cand, T)
-        present = T < K
-        pairs = [
-            (1, 2, geo.d("ANK", "HEE"), False),
-            (1, 3, geo.d("ANK", "TOE"), False),
-            (2, 3, geo.d("HEE", "TOE"), False),
-        ]
-        for a, b, d0, loose in pairs:
-            both = present[:, a] & present[:, b]
-            cost[both] += _rigid(pts[both, a], pts[both, b], d0, loose)
-        # One foot's markers lie at about one depth (silhouette depth errors of tens of mm
-        # allowed): the far foot is ~100-200 mm deeper.
-        for a, b in ((1, 2), (1, 3), (2, 3), (0, 1)):
-            both = present[:, a] & present[:, b]
-            cost[both] += ((pts[both, a, 1] - pts[both, b, 1]) / 80.0) ** 2
-        # The tibia wand: somewhere on the lower shank, side-independent bounds.
+        hy = _Hyp(fr, foot_idx, cand)
         shank = geo.d("KNE", "ANK")
-        both = present[:, 0] & present[:, 1]
-        cost[both] += _interval(pts[both, 0], pts[both, 1], 0.12 * shank, 0.8 * shank)
-        allp = present.all(axis=1)
-        if allp.any():
-            sag = pts[allp][:, :, [0, 2]]  # (f, h)
-            out = _triangle_outside(sag[:, 0], sag[:, 3], sag[:, 2], sag[:, 1])
-            cost[allp] += (out / 15.0) ** 2
         # Hard: the tibia marker above the ankle one.
         # Even pitched 60 deg, the toe stays half a foot length ahead of the heel (a tibia
         # marker, above the ankle, does not).
         reach = 0.5 * geo.d("HEE", "TOE")
-        ht = present[:, 2] & present[:, 3]
-        cost[ht & ~(pts[:, 3, 0] > pts[:, 2, 0] + reach)] = np.inf
-        ta = present[:, 0] & present[:, 1]
-        cost[ta & ~(pts[:, 0, 2] > pts[:, 1, 2] - 20.0)] = np.inf
+        hy.forbid((2, 3), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
+        hy.forbid((0, 1), lambda pt, pa: pt[:, 2] > pa[:, 2] - 20.0)
         # The heel and toe markers never rise far above the ankle one (a plantarflexed
         # foot lifts the heel to about the ankle's level).
         for k, margin in ((2, 60.0), (3, 90.0)):
-            ak = present[:, 1] & present[:, k]
-            cost[ak & ~(pts[:, k, 2] < pts[:, 1, 2] + margin)] = np.inf
+            hy.forbid((1, k), lambda pa, pk, margin=margin: pk[:, 2] < pa[:, 2] + margin)
         # A shank marker never drops far below its standing height while walking.
         ank_h = geo.rel_sho("near", "ANK")[2]
-        cost[present[:, 0] & ~(pts[:, 0, 2] > ank_h + 0.1 * shank)] = np.inf
+        hy.forbid((0,), lambda pt: pt[:, 2] > ank_h + 0.1 * shank)
+        # The foot's sagittal lengths.
+        for a, b, d0 in ((1, 2, geo.d("ANK", "HEE")), (1, 3, geo.d("ANK", "TOE"))):
+            hy.add((a, b), lambda pa, pb, d0=d0: _rigid(pa, pb, d0, False))
+        hy.add((2, 3), lambda pa, pb: _rigid(pa, pb, geo.d("HEE", "TOE"), False))
+        # One foot's markers lie at about one depth (silhouette depth errors of tens of mm
+        # allowed): the far foot is ~100-200 mm deeper.
+        for a, b in ((1, 2), (1, 3), (2, 3), (0, 1)):
+            hy.add((a, b), lambda pa, pb: ((pa[:, 1] - pb[:, 1]) / 80.0) ** 2)
+        # The tibia wand: somewhere on the lower shank, side-independent bounds.
+        hy.add((0, 1), lambda pt, pa: _interval(pt, pa, 0.12 * shank, 0.8 * shank))
+        allp = hy.pa.all(axis=1)
+        if allp.any():
+            # The triangle foot model: ANK inside TIB-TOE-HEE (sagittal), from the signed
+            # distances of _triangle_outside, one table per triple of slots.
+            tib, ank, hee, toe = (hy.Qa[allp, k] for k in range(4))
+            sides = [
+                _side(*s)
+                for s in ((tib, toe, ank), (toe, hee, ank), (hee, tib, ank), (tib, toe, hee))
+            ]
+            out = _outside(*sides)
+            hy.c[allp] += (out / 15.0) ** 2
+        T, present = hy.T, hy.present
 
         # Far heel and toe, completing the best near-foot hypotheses.
         # The far tibia wand (often seen below the near knee) takes part only to absorb its
         # blob: otherwise it passes for a hidden near tibia or heel.
         far_idx = [MARKER_INDEX[f"{far}_{s}"] for s in ("HEE", "TOE", "TIB")]
-        T2 = _tuples(K, 3)
-        c2 = _base_cost(fr, far_idx, cand, T2)
-        p2 = _slots(fr, far_idx, cand, T2)
-        pres2 = T2 < K
-        both2 = pres2[:, 0] & pres2[:, 1]
-        c2[both2] += _rigid(p2[both2, 0], p2[both2, 1], geo.d("HEE", "TOE"))
-        c2[both2 & ~(p2[:, 1, 0] > p2[:, 0, 0] + reach)] = np.inf
+        h2 = _Hyp(fr, far_idx, cand)
+        h2.forbid((0, 1), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
         for k in (0, 1):
-            tk = pres2[:, 2] & pres2[:, k]
-            c2[tk & ~(p2[:, 2, 2] > p2[:, k, 2] + 0.1 * shank)] = np.inf
-        order = np.argsort(cost)[:30]
-        total = np.full((len(order), len(T2)), np.inf)
-        for r, m in enumerate(order):
-            if not np.isfinite(cost[m]):
-                continue
-            used = T[m][T[m] < K]
-            clash = (np.isin(T2, used) & pres2).any(axis=1)
-            cc = c2.copy()
-            cc[clash] = np.inf
-            # The far foot is deeper than the near one.
-            ne = pts[m, present[m], 1]
-            if ne.size:
-                depth_near = float(np.mean(ne))
-                for k in range(2):
-                    cc[pres2[:, k] & (p2[:, k, 1] < depth_near + 20.0)] += 9.0
-                # An absorber must be clearly far-side: it only ever removes a blob.
-                cc[pres2[:, 2] & (p2[:, 2, 1] < depth_near + 50.0)] = np.inf
-            total[r] = cost[m] + cc
+            h2.forbid((2, k), lambda pw, pk: pw[:, 2] > pk[:, 2] + 0.1 * shank)
+        h2.add((0, 1), lambda ph, pt: _rigid(ph, pt, geo.d("HEE", "TOE")))
+        # Forbidden far completions (inf) can be neither the best nor an alternative.
+        T2, c2, pres2 = h2.T[h2.rows], h2.c, h2.present[h2.rows]
+        p2 = h2.Qa  # (0 where missing: every use below is masked by pres2)
+        best = np.argsort(hy.c)[:30]
+        order = hy.rows[best]
+        # Each near hypothesis against every far completion at once: the far blobs must
+        # not reuse a near one ('used' (R, K + 1), the missing column never counts).
+        Tn = T[order]
+        used = np.zeros((len(order), K + 1), bool)
+        used[np.arange(len(order))[:, None], Tn] = True
+        used[:, K] = False
+        clash = used[:, T2].any(axis=2)
+        # The far foot is deeper than the near one (mean depth of the near foot's blobs,
+        # summed slot by slot as np.mean would).
+        pn = present[order]
+        n_near = pn.sum(axis=1)
+        ne = np.where(pn, hy.Q[order, :, 1], 0.0)
+        depth_near = (((ne[:, 0] + ne[:, 1]) + ne[:, 2]) + ne[:, 3]) / np.maximum(n_near, 1)
+        has = (n_near > 0)[:, None]
+        cc = c2
+        for k in range(2):
+            deep = pres2[:, k] & (p2[:, k, 1] < depth_near[:, None] + 20.0)
+            cc = cc + np.where(has & deep, 9.0, 0.0)  # (R, A2)
+        cc = np.where(clash, np.inf, cc)
+        # An absorber must be clearly far-side: it only ever removes a blob.
+        absorb = pres2[:, 2] & (p2[:, 2, 1] < depth_near[:, None] + 50.0)
+        cc = np.where(has & absorb, np.inf, cc)
+        cn = hy.c[best]
+        total = np.where(np.isfinite(cn)[:, None], cn[:, None] + cc, np.inf)
         if np.isfinite(total).any():
             r, j = np.unravel_index(int(np.argmin(total)), total.shape)
             m = order[r]
@@ -881,57 +1030,39 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                 chosen[i] = int(tp[k])
     _accept(fr, chosen, cand, geo, hip, gate)
 
-    # Limb: THI and KNE against HIP, TIB and ANK.
+    # Limb: THI and KNE against HIP, TIB and ANK, with the pelvis's hip label on trial.
     thi_i, kne_i = MARKER_INDEX[f"{near}_THI"], MARKER_INDEX[f"{near}_KNE"]
     lc = np.flatnonzero(fr.free & body & (q[:, 2] > 0.15 * H) & (q[:, 2] < 0.62 * H))
+    cap = 7 if fr.assign[hip_i] >= 0 else 6  # the search grows as (K + 1) ** slots
+    if cap < lc.size:
+        lc = lc[np.argsort(np.abs(q[lc, 2] - geo.rel_sho("near", "KNE")[2]))[:cap]]
+    hip_blob = int(fr.assign[hip_i])
+    if hip_blob >= 0:
+        # The hip slot may keep the pelvis's hip blob or leave it: a hip label that the leg
+        # below contradicts is dropped, and its blob may then be the thigh's or the knee's
+        # (a hidden hip otherwise takes the thigh wand, the thigh label the knee, and the
+        # tracks keep the shifted chain).
+        lc = np.append(lc, hip_blob)
     K2 = lc.size
     if K2 == 0:
         return
-    cap = 7 if hip is not None else 6  # the search grows as (K + 1) ** slots
-    if cap < K2:
-        lc = lc[np.argsort(np.abs(q[lc, 2] - geo.rel_sho("near", "KNE")[2]))[:cap]]
-        K2 = cap
     # The far knee and thigh take part only to absorb their blobs when seen (never
-    # published): otherwise a far-leg marker would take a hidden near one's label.
+    # published): otherwise a far-leg marker would take a hidden near one's label. Without
+    # a pelvis hip, the hip slot absorbs an unlabelled hip blob (left out as ambiguous),
+    # which must not pass for the thigh one.
     far_leg = [MARKER_INDEX[f"{far}_KNE"], MARKER_INDEX[f"{far}_THI"]]
-    slots = [kne_i, thi_i, *far_leg]
-    if hip is None:
-        # An unlabelled hip blob (left out as ambiguous) must not pass for the thigh one.
-        slots.append(hip_i)
-    T3 = _tuples(K2, len(slots))
-    c3 = _base_cost(fr, slots, lc, T3)
-    p3 = _slots(fr, slots, lc, T3)
-    pr = T3 < K2
+    slots = [kne_i, thi_i, *far_leg, hip_i]
+    h3 = _Hyp(fr, slots, lc)
+    if hip_blob >= 0:
+        # The pelvis search has judged the hip's own fit: here only the leg may overrule it.
+        h3.U[4, K2 - 1] = 0.0
+    pr = h3.present
     thigh, shank = geo.d("HIP", "KNE"), geo.d("KNE", "ANK")
-    if hip is None:
-        both = pr[:, 4] & pr[:, 0]
-        c3[both] += _rigid(p3[both, 4], p3[both, 0], thigh)
-        both = pr[:, 4] & pr[:, 1]
-        c3[both] += _interval(p3[both, 4], p3[both, 1], 0.1 * thigh, 0.9 * thigh)
-        for k in (0, 1):
-            both = pr[:, 4] & pr[:, k]
-            c3[both & ~(p3[:, 4, 2] > p3[:, k, 2])] = np.inf
     anchors = {}
     for site in ("TIB", "ANK"):
         i = MARKER_INDEX[f"{near}_{site}"]
         if fr.assign[i] >= 0:
             anchors[site] = fr.pos(i)[fr.assign[i]]
-    k0 = pr[:, 0]
-    for a_pos in anchors.values():
-        # The knee is above the shank markers.
-        c3[k0 & ~(p3[:, 0, 2] > a_pos[2])] = np.inf
-    if "ANK" in anchors:
-        c3[k0] += _rigid(p3[k0, 0], anchors["ANK"][None], shank)
-        if "TIB" in anchors:
-            n = int(k0.sum())
-            tib, ank = (np.repeat(anchors[k][None], n, 0) for k in ("TIB", "ANK"))
-            c3[k0] += _on_segment(p3[k0, 0], tib, ank)
-    elif "TIB" in anchors:
-        c3[k0] += _interval(p3[k0, 0], anchors["TIB"][None], 0.2 * shank, 0.88 * shank)
-    if hip is not None:
-        c3[k0] += _rigid(p3[k0, 0], hip[None], thigh)
-        k1 = pr[:, 1]
-        c3[k1] += _interval(p3[k1, 1], hip[None], 0.1 * thigh, 0.9 * thigh)
     # Near or far leg: depth relative to the near leg's labelled markers (the standing
     # offsets from the shoulder carry the shoulder's depth error and the trunk's rotation).
     ref = [
@@ -939,24 +1070,59 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         for s in ("HIP", "TIB", "ANK")
         if fr.assign[MARKER_INDEX[f"{near}_{s}"]] >= 0
     ]
-    if ref:
-        ref_e = float(np.mean([r[1] for r in ref]))
-        for k in (0, 1):
-            c3[pr[:, k]] += ((p3[pr[:, k], k, 1] - ref_e) / 60.0) ** 2
-        for k in (2, 3):
-            c3[pr[:, k] & (p3[:, k, 1] < ref_e + 50.0)] = np.inf
+    ref_e = float(np.mean([r[1] for r in ref])) if ref else np.nan
+    # Without a pelvis hip the knee-thigh spacing counts only with all five slots filled
+    # (as before the hip check; the absorbed hip blob is not a confirmed hip).
+    both = pr[:, :2].all(axis=1) if hip_blob >= 0 else pr.all(axis=1)
+    chain = both & pr[:, 4] & (hip_blob >= 0)
     kne_h = geo.rel_sho("near", "KNE")[2]
+    # Hard rules: the pelvis's hip blob or none in the hip slot; the hip above knee and
+    # thigh; the knee above the shank markers; far knee and thigh deeper than the near leg;
+    # knee and thigh well above the floor; the thigh above the knee.
+    if hip_blob >= 0:
+        h3.forbid((4,), lambda ph: np.zeros(len(ph), bool), where=h3.T[:, 4] != K2 - 1)
+        if not 0.15 * H < q[hip_blob, 2] < 0.62 * H:
+            # Above the limb band: a hip blob that is no knee or thigh candidate itself.
+            for k in range(4):
+                h3.forbid((k,), lambda p: np.zeros(len(p), bool), where=h3.T[:, k] == K2 - 1)
     for k in (0, 1):
-        c3[pr[:, k] & ~(p3[:, k, 2] > 0.6 * kne_h)] = np.inf
-    both = pr.all(axis=1) if hip is None else pr[:, :2].all(axis=1)
-    c3[both] += _interval(p3[both, 0], p3[both, 1], 0.1 * thigh, 0.9 * thigh)
-    if hip is not None:
-        n = int(both.sum())
-        c3[both] += _on_segment(np.repeat(hip[None], n, 0), p3[both, 1], p3[both, 0])
-    c3[both & ~(p3[:, 1, 2] > p3[:, 0, 2])] = np.inf
+        h3.forbid((4, k), lambda ph, pk: ph[:, 2] > pk[:, 2])
+    for a_pos in anchors.values():
+        h3.forbid((0,), lambda pk, a_pos=a_pos: pk[:, 2] > a_pos[2])
+    if ref:
+        for k in (2, 3):
+            h3.forbid((k,), lambda p: ~(p[:, 1] < ref_e + 50.0))
+    for k in (0, 1):
+        h3.forbid((k,), lambda p: p[:, 2] > 0.6 * kne_h)
+    h3.forbid((0, 1), lambda pk, pt: pt[:, 2] > pk[:, 2], where=both)
+    # Costs: thigh and shank lengths, the wands on their segments, the near leg's depth.
+    h3.add((4, 0), lambda ph, pk: _rigid(ph, pk, thigh))
+    h3.add((4, 1), lambda ph, pt: _interval(ph, pt, 0.1 * thigh, 0.9 * thigh))
+    if "ANK" in anchors:
+        h3.add((0,), lambda pk: _rigid(pk, anchors["ANK"][None], shank))
+        if "TIB" in anchors:
+
+            def on_shank(pk: np.ndarray) -> np.ndarray:
+                tib, ank = (np.repeat(anchors[k][None], len(pk), 0) for k in ("TIB", "ANK"))
+                return _on_segment(pk, tib, ank)
+
+            h3.add((0,), on_shank)
+    elif "TIB" in anchors:
+        h3.add((0,), lambda pk: _interval(pk, anchors["TIB"][None], 0.2 * shank, 0.88 * shank))
+    if ref:
+        for k in (0, 1):
+            h3.add((k,), lambda p: ((p[:, 1] - ref_e) / 60.0) ** 2)
+    h3.add((0, 1), lambda pk, pt: _interval(pk, pt, 0.1 * thigh, 0.9 * thigh), where=both)
+    h3.add((4, 1, 0), lambda ph, pt, pk: _on_segment(ph, pt, pk), where=chain)
+    if h3.rows.size == 0:
+        return
+    T3, c3 = h3.T[h3.rows], h3.c
     j = int(np.argmin(c3))
     if not np.isfinite(c3[j]):
         return
+    if hip_blob >= 0 and T3[j, 4] >= K2:
+        fr.assign[hip_i] = -1
+        fr.free[hip_blob] = True
     keep = _unambiguous(c3, T3, j, K2, fr.ambiguity)
     chosen = {i: int(T3[j, k]) for k, i in enumerate((kne_i, thi_i)) if keep[k]}
     for k in range(2, len(slots)):
@@ -981,6 +1147,27 @@ WAND = (
 )
 
 
+def _checks(near: str) -> tuple[np.ndarray, ...]:
+    """The step-10 distance checks of ``_accept`` for a near side, as index arrays.
+
+    Returns (kind (C,) 0 = rigid, 1 = loose rigid, 2 = wand interval; marker indices ia, ib;
+    site indices ra, rb of the reference segment; lo, hi fractions of its length).
+    """
+    rows = []
+    for side in (near, "L" if near == "R" else "R"):
+        for a, b, loose in RIGID:
+            ia, ib = MARKER_INDEX[f"{side}_{a}"], MARKER_INDEX[f"{side}_{b}"]
+            rows.append((int(loose), ia, ib, SITES.index(a), SITES.index(b), 0.0, 0.0))
+        for w, j, (r0, r1), lo, hi in WAND:
+            ia, ib = MARKER_INDEX[f"{side}_{w}"], MARKER_INDEX[f"{side}_{j}"]
+            rows.append((2, ia, ib, SITES.index(r0), SITES.index(r1), lo, hi))
+    cols = list(zip(*rows, strict=True))
+    return (*(np.array(c, dtype=np.int64) for c in cols[:5]), *(np.array(c) for c in cols[5:]))
+
+
+CHECKS = {near: _checks(near) for near in ("R", "L")}
+
+
 def _accept(
     fr: _Frame,
     chosen: dict[int, int],
@@ -992,33 +1179,37 @@ def _accept(
     """Step 10 gate: drop a label that breaks its track or a rigid distance to an accepted
     or co-chosen marker (both ends of a broken distance go: which one is wrong is unknown).
     """
-    pos = {MARKER_NAMES[i]: fr.pos(i)[cand[k]] for i, k in chosen.items()}
-    for i in np.flatnonzero(fr.assign >= 0):
-        pos.setdefault(MARKER_NAMES[i], fr.pos(i)[fr.assign[i]])
-    bad: set[int] = set()
+    if not chosen:
+        return
+    ci = np.fromiter(chosen.keys(), np.int64, len(chosen))
+    cb = cand[np.fromiter(chosen.values(), np.int64, len(chosen))]
+    have = fr.assign >= 0
+    P = np.full((20, 3), np.nan)
+    P[have] = fr.qm[fr.assign[have], MODE_OF[have]]
+    P[ci] = fr.qm[cb, MODE_OF[ci]]  # a co-chosen label stands for an accepted one
+    have[ci] = True
+    is_chosen = np.zeros(20, bool)
+    is_chosen[ci] = True
+    bad = np.zeros(20, bool)
+    d = (P[ci] - fr.pred[ci]) / fr.sig[ci]
+    bad[ci] = (d**2).sum(axis=1) > 3 * gate**2
+    kind, ia, ib, ra, rb, lo, hi = CHECKS[fr.near]
+    live = have[ia] & have[ib]
+    for k in (0, 1, 2):
+        m = live & (kind == k)
+        if not m.any():
+            continue
+        d0 = geo.dist[ra[m], rb[m]]
+        if k == 2:
+            e = _interval(P[ia[m]], P[ib[m]], lo[m] * d0, hi[m] * d0)
+        else:
+            e = _rigid(P[ia[m]], P[ib[m]], d0, bool(k))
+        broken = e > gate**2
+        bad[ia[m][broken]] = True
+        bad[ib[m][broken]] = True
+    bad &= is_chosen
     for i, k in chosen.items():
-        if _unary(fr, i, np.array([cand[k]]))[0] > 3 * gate**2:
-            bad.add(i)
-    for side in (fr.near, "L" if fr.near == "R" else "R"):
-        for a, b, loose in RIGID:
-            na, nb = f"{side}_{a}", f"{side}_{b}"
-            if na in pos and nb in pos:
-                e = _rigid(pos[na][None], pos[nb][None], geo.d(a, b), loose)[0]
-                if e > gate**2:
-                    for n in (na, nb):
-                        if MARKER_INDEX[n] in chosen:
-                            bad.add(MARKER_INDEX[n])
-        for w, j, (r0, r1), lo, hi in WAND:
-            na, nb = f"{side}_{w}", f"{side}_{j}"
-            if na in pos and nb in pos:
-                d0 = geo.d(r0, r1)
-                e = _interval(pos[na][None], pos[nb][None], lo * d0, hi * d0)[0]
-                if e > gate**2:
-                    for n in (na, nb):
-                        if MARKER_INDEX[n] in chosen:
-                            bad.add(MARKER_INDEX[n])
-    for i, k in chosen.items():
-        if i not in bad:
+        if not bad[i]:
             fr.assign[i] = int(cand[k])
             fr.free[cand[k]] = False
 
@@ -1031,14 +1222,13 @@ def _output(mk: Markers3D, assign: np.ndarray, direction: int, near: str) -> Lab
     cen = np.asarray(mk.centroid, dtype=np.float64).reshape(-1, 2)
     position = np.full((20, 3), np.nan)
     pixel = np.full((20, 2), np.nan)
-    for i in np.flatnonzero(assign >= 0):
-        b = assign[i]
-        m = CLUSTER_MODES.index(cluster_mode(MARKER_NAMES[i]))
-        xyz = pos[b, m]
-        if not np.isfinite(xyz).all():
-            xyz = pos[b, 0]  # the label's own mode found no layer: normal mode
-        position[i] = xyz
-        pixel[i] = cen[b]
+    ii = np.flatnonzero(assign >= 0)
+    b = assign[ii]
+    xyz = pos[b, OWN_MODE[ii]]
+    # The label's own mode found no layer: normal mode.
+    xyz = np.where(np.isfinite(xyz).all(axis=1)[:, None], xyz, pos[b, 0])
+    position[ii] = xyz
+    pixel[ii] = cen[b]
     return LabelledMarkers.follow(
         mk.header,
         position=position,
@@ -1067,14 +1257,19 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     cal = inputs.get("calibration")
     model = inputs.get("model")
     p = state.params
-    ff = FloorFrame.from_record(
-        cal if isinstance(cal, CalibrationRecord) else None, p["camera_height_mm"]
-    )
-    geo = Geometry.from_model(model if isinstance(model, SubjectModel) else None)
+    cal = cal if isinstance(cal, CalibrationRecord) else None
+    model = model if isinstance(model, SubjectModel) else None
     st = state
     if mk.header.trial != st.trial or mk.header.frame <= st.frame:
         st = init(p)
         st = replace(st, trial=mk.header.trial)
+    # The floor frame and geometry are rebuilt only when a side input changes (the driver
+    # hands the same message objects every frame; the state holds them, so the identity
+    # test cannot be fooled by a recycled id).
+    if st.sides is None or st.sides[0] is not cal or st.sides[1] is not model:
+        ff = FloorFrame.from_record(cal, p["camera_height_mm"])
+        st = replace(st, sides=(cal, model, ff, Geometry.from_model(model)))
+    _, _, ff, geo = st.sides
     pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
     st, assign = label_frame(st, pos, mk.header.frame, ff, geo)
     near = "" if st.direction == 0 else ("R" if st.direction > 0 else "L")

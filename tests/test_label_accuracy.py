@@ -1,0 +1,125 @@
+"""Label accuracy rules on literal layouts (phase 2 of the label speed/accuracy work)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from gaitflow.stages import label
+from gaitflow.stages.model import FloorFrame
+
+from gaitflow.errors import ParameterError
+from gaitflow.evaluate_label import calibration_record, to_camera
+from gaitflow.markers import MARKER_INDEX
+
+
+def _shoulder_frame(far_sho_mm: float) -> np.ndarray:
+    """One frame after a walking shoulder track whose near shoulder has left the view: the
+    only shoulder-height blob is the far shoulder, 60 mm behind the prediction along the
+    walk and 100 mm deeper (inside the 150 mm gate)."""
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    st = label.init(label.PARAMS.resolve({"far_sho_mm": far_sho_mm}))
+    v = 1350.0  # mm/s along the walk
+    x = np.array([3000.0, 0.0, H, v, 0.0, 0.0])
+    st = replace(
+        st,
+        trial="walk-01",
+        frame=10,
+        sho_x=x,
+        sho_cov=np.diag([15.0**2] * 3 + [300.0**2] * 3),
+        direction=1,
+        walked=True,
+    )
+    ahead = x[0] + v / 30.0
+    blob = to_camera(np.array([ahead - 60.0, 100.0, H]))
+    pos = np.repeat(blob[None, None, :], 3, axis=1)  # (1 blob, 3 modes, 3)
+    _, assign = label.label_frame(st, pos, 11, ff, geo)
+    return assign
+
+
+def test_far_shoulder_does_not_continue_the_near_shoulder_track() -> None:
+    assert _shoulder_frame(80.0)[MARKER_INDEX["R_SHO"]] == -1
+
+
+def test_far_shoulder_rule_is_what_rejects_it() -> None:
+    # Without the rule (any depth accepted) the same blob continues the track.
+    assert _shoulder_frame(1000.0)[MARKER_INDEX["R_SHO"]] == 0
+
+
+def test_far_sho_mm_is_declared_non_negative() -> None:
+    with pytest.raises(ParameterError, match="far_sho_mm"):
+        label.PARAMS.resolve({"far_sho_mm": -1.0})
+
+
+def _leg_frame() -> tuple[label._Frame, dict[str, int], label.Geometry, np.ndarray]:
+    """A walking frame of the template subject (near side R, walking toward +a): blobs at the
+    standing offsets of the near leg's THI, KNE, TIB, ANK, HEE and TOE; the hip is hidden."""
+    geo = label.Geometry.from_model(None)
+    sho = np.array([2000.0, 0.0, geo.sho_h])
+    sites = ("THI", "KNE", "TIB", "ANK", "HEE", "TOE")
+    offs = [geo.rel_sho("near", s) for s in sites]
+    q = np.array([[sho[0] + o[0], sho[1] + o[1], o[2]] for o in offs])
+    qm = np.repeat(q[:, None, :], 3, axis=1)
+    st = label.init(label.PARAMS.resolve({}))
+    pred, sig, tracked = label._predictions(st, geo, sho, "R", 1, 100)
+    fr = label._Frame(
+        qm=qm,
+        free=np.ones(len(q), bool),
+        assign=np.full(20, -1),
+        pred=pred,
+        sig=sig,
+        near="R",
+        tracked=tracked,
+        ambiguity=4.0,
+        age=np.full(20, 10**9),
+    )
+    return fr, {s: k for k, s in enumerate(sites)}, geo, sho
+
+
+def test_hip_label_on_the_thigh_wand_is_dropped_by_the_limb_search() -> None:
+    fr, blob, geo, sho = _leg_frame()
+    # The pelvis search took the thigh wand for the hidden hip.
+    fr.assign[MARKER_INDEX["R_HIP"]] = blob["THI"]
+    fr.free[blob["THI"]] = False
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[MARKER_INDEX["R_HIP"]] == -1
+    # Without a thigh track, "hip or thigh wand" stays open for that blob: no label (a
+    # gap), never the wrong one; the knee and ankle below are named.
+    assert fr.assign[MARKER_INDEX["R_THI"]] in (-1, blob["THI"])
+    assert fr.assign[MARKER_INDEX["R_KNE"]] == blob["KNE"]
+    assert fr.assign[MARKER_INDEX["R_ANK"]] == blob["ANK"]
+
+
+def test_a_right_hip_label_is_kept_by_the_limb_search() -> None:
+    fr, blob, geo, sho = _leg_frame()
+    o = geo.rel_sho("near", "HIP")
+    hip = np.array([sho[0] + o[0], sho[1] + o[1], o[2]])
+    fr.qm = np.concatenate([fr.qm, np.repeat(hip[None, None, :], 3, axis=1)])
+    fr.free = np.append(fr.free, False)
+    fr.assign[MARKER_INDEX["R_HIP"]] = len(fr.qm) - 1
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[MARKER_INDEX["R_HIP"]] == len(fr.qm) - 1
+    assert fr.assign[MARKER_INDEX["R_THI"]] == blob["THI"]
+    assert fr.assign[MARKER_INDEX["R_KNE"]] == blob["KNE"]
+
+
+def test_a_crouched_knee_on_its_track_is_not_taken_for_the_tibia() -> None:
+    fr, blob, geo, sho = _leg_frame()
+    H = geo.sho_h
+    # Feet out of view; the knee, crouched to a quarter of shoulder height (inside the foot
+    # search's band), was labelled last frame and its track predicts it.
+    k = blob["KNE"]
+    fr.qm[k, :, 2] = 0.25 * H
+    for s in ("TIB", "ANK", "HEE", "TOE"):
+        fr.free[blob[s]] = False
+        fr.qm[blob[s]] = np.nan
+    i = MARKER_INDEX["R_KNE"]
+    fr.pred[i] = fr.qm[k, 0]
+    fr.sig[i] = (50.0, 70.0, 50.0)
+    fr.tracked[i], fr.age[i] = True, 1
+    label._lower(fr, geo, sho, H, 4.0)
+    assert fr.assign[MARKER_INDEX["R_TIB"]] == -1
+    assert fr.assign[i] == k
