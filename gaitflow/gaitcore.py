@@ -601,6 +601,56 @@ def progression(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.
     return (np.asarray(points, dtype=float) - np.asarray(origin, dtype=float)) @ np.asarray(axis)
 
 
+def line_of_progression(
+    t: np.ndarray,
+    points: np.ndarray,
+    plane: np.ndarray,
+    ref: np.ndarray,
+    min_span_s: float = 0.5,
+) -> np.ndarray:
+    """Direction the subject actually walked during one pass, parallel to the floor. (3,)
+
+    Step and stride length are distances along the subject's line of progression (the
+    clinical footprint definition), not along the walkway drawn at calibration: an axis off
+    by theta turns the step width w between the heels into a step-length error of
+    w sin(theta), alternating in sign between left and right steps. Each body marker's
+    least-squares velocity over the pass (slope of its position against time) is taken; these
+    are summed weighted by the samples each rests on, and the sum is projected onto the floor.
+    A marker's own slope does not move when other markers enter or leave the view (a mean of
+    the markers seen would jump), and whole strides of lateral sway average out.
+
+    Parameters
+    ----------
+    t : (N,) s. points : (N, M, 3) mm, body markers (pelvis, trunk), NaN = missing.
+    plane : (4,) floor plane ``(nx, ny, nz, d)``. ref : (3,) unit walking axis signed in the
+        direction of this pass (gives the sign; returned when no direction can be measured).
+    min_span_s : a marker counts only when seen (at least 3 samples) over this long.
+
+    Returns
+    -------
+    (3,) unit vector in the floor plane, ``@ ref > 0``; ``ref`` itself when no marker counts
+    or the measured motion runs against ``ref`` (not this pass's walk).
+    """
+    t = np.asarray(t, dtype=float)
+    pts = np.asarray(points, dtype=float)
+    ref = np.asarray(ref, dtype=float)
+    n = np.asarray(plane[:3], dtype=float)
+    n = n / np.linalg.norm(n)
+    v = np.zeros(3)
+    for k in range(pts.shape[1]):
+        ok = np.isfinite(pts[:, k]).all(axis=1)
+        if ok.sum() < 3 or t[ok][-1] - t[ok][0] < min_span_s:
+            continue
+        tk = t[ok] - t[ok].mean()
+        x = pts[ok, k] - pts[ok, k].mean(axis=0)
+        v += ok.sum() * (tk @ x) / (tk @ tk)
+    v = v - (v @ n) * n
+    norm = float(np.linalg.norm(v))
+    if not norm > 0 or not v @ ref > 0:
+        return ref
+    return v / norm
+
+
 # ---------------------------------------------------------------------------------------------
 # Alg. 6: inflection-point search (water-filling reading, algorithms.md section 3.6 Rec.)
 
@@ -848,7 +898,8 @@ class Contact:
     """One stance of one foot, from Alg. 6 on its heel and toe heights.
 
     Times in seconds; NaN where that end of the stance was not observed. ``heel_pos`` is the
-    median progression of the heel over its flat range (mm along the walking direction).
+    median progression of the heel while planted (mm along the walking direction): over its
+    flat range up to the heel rise, Fig. 6's stable window.
     """
 
     side: str
@@ -884,6 +935,7 @@ def foot_contacts(
     to_speed_frac: float = 0.3,
     min_contact_s: float = 0.15,
     rise_frac: float = 0.05,
+    arrive_speed_frac: float = 0.5,
 ) -> list[Contact]:
     """Stances of one foot from Alg. 6 on its heel and toe heights.
 
@@ -915,6 +967,12 @@ def foot_contacts(
         leaves the view) must be followed by at least this much observed contact.
     rise_frac : heel rise = the heel above its lowest point in the range by this fraction
         of its normalised height range (used by the phases only).
+    arrive_speed_frac : ``refine="velocity"`` only. A heel strike needs the heel seen moving
+        (faster than the ``hs_speed_frac`` rest speed) before it comes to rest, else it was
+        already down when the data or the pass began: no event. A flat range that begins
+        where the heel comes into view (open left end: Alg. 6 saw no descent to lock on) has
+        a heel strike when the heel is seen moving faster than this fraction of its swing
+        speed, then coming to rest: the strike itself was observed.
 
     Returns
     -------
@@ -940,18 +998,27 @@ def foot_contacts(
     n = len(t)
     for i, r in enumerate(hranges):
         hs_i = r.left if r.left_locked else -1
-        if use_vel and hs_i >= 0:
-            first = int(np.searchsorted(t, t[r.left] - 0.3))
-            if i > 0:
-                first = max(first, hranges[i - 1].right + 1)
-            if i > 0 and hr.peaks and i - 1 < len(hr.peaks):
-                first = max(first, hr.peaks[i - 1])
-            # the first sample from there on where the heel speed is down (NaN never is)
+        if use_vel and (hs_i >= 0 or r.left_open):
+            first = r.left  # open: the foot walks into view in its swing
+            if r.left_locked:
+                first = int(np.searchsorted(t, t[r.left] - 0.3))
+                if i > 0:
+                    first = max(first, hranges[i - 1].right + 1)
+                if i > 0 and hr.peaks and i - 1 < len(hr.peaks):
+                    first = max(first, hr.peaks[i - 1])
+            # the strike is seen only if the heel is seen moving first (else it was already
+            # down when the data or the pass began): then the first sample where its speed
+            # is down (NaN never is); never coming to rest inside its flat range means no
+            # heel strike, not a guess. Alg. 6 locks while the heel is still moving (it
+            # lands about 0.1 s later): a lock with the heel already at rest is no landing.
+            # Without a lock (open end) the heel must be seen in its swing.
+            moving = (hs_speed_frac if r.left_locked else arrive_speed_frac) * ref
+            until = r.left + 1 if r.left_locked else r.right
             with np.errstate(invalid="ignore"):
-                rest = np.flatnonzero(vh[first : r.right] <= hs_speed_frac * ref)
-            j = first + int(rest[0]) if rest.size else max(first, r.right)
-            # the heel never came to rest inside its flat range: no heel strike, not a guess
-            hs_i = j if j < r.right else -1
+                fast = np.flatnonzero(vh[first:until] > moving)
+                a = first + int(fast[0]) if fast.size else r.right
+                rest = np.flatnonzero(vh[a : r.right] <= hs_speed_frac * ref)
+            hs_i = a + int(rest[0]) if rest.size else -1
         if hs_i >= 0 and r.right_open and t[r.right] - t[hs_i] < min_contact_s:
             # seen for too short a time before the data ends (leaving the view): no event
             hs_i = -1
@@ -959,12 +1026,15 @@ def foot_contacts(
         # heel rise: the heel leaves its lowest level by rise_frac of its swing height (the
         # locked end of the range lies higher up the wall: it brackets, it does not time)
         rise = float("nan")
-        if r.right_locked and np.isfinite(hr.hi - hr.lo):
+        planted = r.right  # last sample of the heel's stable window (Fig. 6)
+        if np.isfinite(hr.hi - hr.lo):
             seg = heel_h[r.left : r.right + 1]
             if np.isfinite(seg).any():
                 k0 = int(np.nanargmin(seg))
                 above = np.flatnonzero(seg[k0:] > seg[k0] + rise_frac * (hr.hi - hr.lo))
-                rise = float(t[r.left + k0 + above[0]]) if above.size else float(t[r.right])
+                planted = r.left + k0 + int(above[0]) if above.size else r.right
+                if r.right_locked:
+                    rise = float(t[planted])
         next_left = hranges[i + 1].left if i + 1 < len(hranges) else n
         to = float("nan")
         for q in tr.ranges:
@@ -982,7 +1052,8 @@ def foot_contacts(
                 if not vt[j] > to_speed_frac * ref:
                     continue  # the toe never left inside this stride: no toe off
             to = float(t[j])
-        pos = np.asarray(heel_prog[r.left : r.right + 1], dtype=float)
+        # the heel stands still from its strike to its rise, then rolls forward with the foot
+        pos = np.asarray(heel_prog[r.left : planted + 1], dtype=float)
         pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")
         out.append(Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right])))
     return out

@@ -15,7 +15,8 @@ Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
 2. every marker gap-filled with cubic Bezier segments (at most ``max_gap_s``), then
    resampled to ``resample_hz`` with Catmull-Rom Bezier segments on the timestamps;
 3. heel and toe heights above the calibration's floor plane; positions along the walking
-   axis from the start to the end point;
+   axis from the start to the end point (``progression="walkway"``) or, per pass, along the
+   subject's own line of progression (``"pass"``, :func:`gaitflow.gaitcore.line_of_progression`);
 4. the walk split into passes by the direction of progression of the pelvis markers (the
    return pass shows the other side of the body to the camera);
 5. per pass and foot, Alg. 6 on the heel and toe heights, events refined inside the flat
@@ -107,6 +108,15 @@ PARAMS = ParamSet(
         ),
         Param("hs_speed_frac", float, 0.1, "ratio", "heel strike: heel speed / swing speed", 0.0),
         Param("to_speed_frac", float, 0.3, "ratio", "toe off: toe speed / swing speed", 0.0),
+        Param(
+            "progression",
+            str,
+            "walkway",
+            "",
+            "lengths and speeds measured along the calibration's walkway axis, or along each "
+            "pass's own line of progression (least-squares velocity of the trunk markers)",
+            choices=("walkway", "pass"),
+        ),
         Param("min_pass_s", float, 0.6, "s", "shortest walking pass", 0.1),
         Param("min_speed_mm_s", float, 150.0, "mm/s", "slower than this is not walking", 1.0),
         Param("live_every", int, 15, "frames", "live event search period (0 = at the end)", 0),
@@ -136,6 +146,8 @@ CONTACT_PARAMS = (
     "to_speed_frac",
 )
 BODY = [f"{s}_{m}" for s in "LR" for m in ("SHO", "ASI", "PSI", "HIP", "THI")]
+# the line of progression: markers that move with the body, not with a leg or an arm
+TRUNK = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("SHO", "ASI", "PSI", "HIP")]
 KNEE_MARKERS = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HIP", "KNE", "ANK")]
 _HIP, _KNE, _ANK, _HEE, _TOE = (
     [MARKER_INDEX[f"{s}_{m}"] for s in "LR"] for m in ("HIP", "KNE", "ANK", "HEE", "TOE")
@@ -407,20 +419,22 @@ def analyse(
         found = gc.split_passes(tq, body, p["min_speed_mm_s"], min_duration_s=p["min_pass_s"])
         for ps in found:
             sl = slice(ps.start, ps.stop)
-            d = float(ps.direction)
+            u = float(ps.direction) * axis  # signed: progression grows along the walk
+            if p["progression"] == "pass":
+                u = gc.line_of_progression(tq[sl], pq[sl][:, TRUNK], plane, u)
             contacts: dict[str, list[gc.Contact]] = {}
             prog_heel: dict[str, np.ndarray] = {}
             tilt: dict[str, np.ndarray] = {}
             for s in "LR":
                 heel = pq[sl, MARKER_INDEX[f"{s}_HEE"]]
                 toe = pq[sl, MARKER_INDEX[f"{s}_TOE"]]
-                prog_heel[s] = d * gc.progression(heel, origin, axis)
+                prog_heel[s] = gc.progression(heel, origin, u)
                 args = (
                     tq[sl],
                     gc.plane_height(heel, plane),
                     gc.plane_height(toe, plane),
                     prog_heel[s],
-                    d * gc.progression(toe, origin, axis),
+                    gc.progression(toe, origin, u),
                     s,
                 )
                 kw = {k: p[k] for k in CONTACT_PARAMS}
@@ -430,10 +444,9 @@ def analyse(
                     found_c = cache.used[key] = tuple(gc.foot_contacts(*args, **kw))
                 contacts[s] = list(found_c)
                 if not live:
-                    tilt[s] = d * (
-                        gc.progression(pq[sl, MARKER_INDEX[f"{s}_KNE"]], origin, axis)
-                        - gc.progression(pq[sl, MARKER_INDEX[f"{s}_ANK"]], origin, axis)
-                    )
+                    tilt[s] = gc.progression(
+                        pq[sl, MARKER_INDEX[f"{s}_KNE"]], origin, u
+                    ) - gc.progression(pq[sl, MARKER_INDEX[f"{s}_ANK"]], origin, u)
             near = ""  # live events do not need it
             if not live:
                 inside = np.flatnonzero((tq[ps.start] <= t) & (t <= tq[ps.stop - 1])).tolist()

@@ -178,7 +178,9 @@ def fields(msg) -> list:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("params", [{}, {"depth_smooth_s": 0.3, "live_every": 7}])
+@pytest.mark.parametrize(
+    "params", [{}, {"depth_smooth_s": 0.3, "live_every": 7, "progression": "pass"}]
+)
 def test_the_stage_with_its_caches_equals_the_stage_without(walk, params):
     frames, cal = walk
     cached = outputs(frames, cal, False, **params)
