@@ -549,12 +549,16 @@ def smooth_depth(t: np.ndarray, pos: np.ndarray, window_s: float) -> np.ndarray:
 # geometry
 
 
-def knee_flexion(hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray) -> np.ndarray:
+def knee_flexion(
+    hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray, lateral: np.ndarray | None = None
+) -> np.ndarray:
     """Knee flexion = 180 deg minus the angle HIP-KNE-ANK (algorithms.md section 5).
 
     Parameters
     ----------
     hip, knee, ankle : (..., 3) positions, mm.
+    lateral : optional (3,) unit vector normal to the sagittal plane: the angle is then
+        measured between the segments projected onto that plane (sagittal knee flexion).
 
     Returns
     -------
@@ -563,6 +567,10 @@ def knee_flexion(hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray) -> np.nda
     """
     a = np.asarray(hip, dtype=float) - np.asarray(knee, dtype=float)
     b = np.asarray(ankle, dtype=float) - np.asarray(knee, dtype=float)
+    if lateral is not None:
+        n = np.asarray(lateral, dtype=float)
+        a = a - (a @ n)[..., None] * n
+        b = b - (b @ n)[..., None] * n
     na = np.linalg.norm(a, axis=-1)
     nb = np.linalg.norm(b, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -581,6 +589,13 @@ def plane_height(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
     pl = np.asarray(plane, dtype=float)
     n = pl[:3] / np.linalg.norm(pl[:3])
     return np.asarray(points, dtype=float) @ n + pl[3] / np.linalg.norm(pl[:3])
+
+
+def lateral_axis(plane: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Unit normal of the sagittal plane: floor normal x walking axis. (3,)"""
+    n = np.asarray(plane[:3], dtype=float)
+    lat = np.cross(n / np.linalg.norm(n), np.asarray(axis, dtype=float))
+    return lat / np.linalg.norm(lat)
 
 
 def walking_axis(start: np.ndarray, end: np.ndarray, plane: np.ndarray | None = None) -> np.ndarray:

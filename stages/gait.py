@@ -117,6 +117,15 @@ PARAMS = ParamSet(
             "pass's own line of progression (least-squares velocity of the trunk markers)",
             choices=("walkway", "pass"),
         ),
+        Param(
+            "knee_plane",
+            str,
+            "3d",
+            "",
+            "knee flexion from the 3D angle HIP-KNE-ANK (the paper), or from the segments "
+            "projected on the sagittal plane (floor normal and walkway axis; departure)",
+            choices=("3d", "sagittal"),
+        ),
         Param("min_pass_s", float, 0.6, "s", "shortest walking pass", 0.1),
         Param("min_speed_mm_s", float, 150.0, "mm/s", "slower than this is not walking", 1.0),
         Param("live_every", int, 15, "frames", "live event search period (0 = at the end)", 0),
@@ -180,6 +189,8 @@ class GaitState:
     end: np.ndarray | None = None
     emitted: tuple[tuple[str, str, float], ...] = ()
     summarised_until: float = float("-inf")  # end of the last pass given its own summary
+    # the sagittal plane's normal for the live knee angle (``knee_plane`` = sagittal)
+    lateral: np.ndarray | None = None
     # results of the recent analyses by a digest of their exact inputs (see ``Memo``)
     memo: tuple[Mapping[bytes, Any], ...] = ()
     # the resampled markers of the last analysis of the whole trial (``analyse(series=)``)
@@ -285,6 +296,26 @@ def _axis(plane: np.ndarray, start: np.ndarray | None, end: np.ndarray | None, p
     u = np.array([1.0, 0.0, 0.0])
     u = u - (u @ n) * n
     return u / np.linalg.norm(u), np.zeros(3)
+
+
+def _sagittal_normal(
+    p: Mapping[str, Any],
+    plane: np.ndarray | None,
+    start: np.ndarray | None,
+    end: np.ndarray | None,
+    pos: np.ndarray,
+) -> np.ndarray | None:
+    """The sagittal plane's normal when ``knee_plane`` is ``sagittal`` (else None).
+
+    Why: seen from the side, a marker's position across the walkway comes from its depth,
+    the noisiest coordinate (tens of mm on a silhouette or with a limb in front); the
+    sagittal angle uses only the two coordinates the image gives. In a straight walk the
+    knee moves in about that plane, so the two angles differ by a degree or two.
+    """
+    if p["knee_plane"] != "sagittal" or plane is None:
+        return None
+    axis, _origin = _axis(plane, start, end, pos)
+    return gc.lateral_axis(plane, axis)
 
 
 def _near_side(frames: Sequence[FrameRec]) -> str:
@@ -400,9 +431,10 @@ def analyse(
         pk, knee_series = _fill_resample(t, kpos, KNEE_MARKERS, p, prev.get("knee"), keep)
         if knee_series is not None:
             kept["knee"] = knee_series
+        lat = _sagittal_normal(p, plane, start, end, pos)
         for s in "LR":
             hip, kne, ank = (pk[:, MARKER_INDEX[f"{s}_{m}"]] for m in ("HIP", "KNE", "ANK"))
-            knee[s] = gc.knee_flexion(hip, kne, ank)
+            knee[s] = gc.knee_flexion(hip, kne, ank, lat)
             if p["segment_tol"] > 0:
                 # a wrong label that survived makes a thigh or shank change length
                 bad = gc.segment_outliers(hip, kne, p["segment_tol"])
@@ -558,7 +590,7 @@ def _document(
 def _gait_frame(state: GaitState, rec: FrameRec, events: list) -> GaitFrame:
     pos = rec.position
     # both sides in one call each (rows are independent: the same values as one by one)
-    knee = gc.knee_flexion(pos[_HIP], pos[_KNE], pos[_ANK])
+    knee = gc.knee_flexion(pos[_HIP], pos[_KNE], pos[_ANK], state.lateral)
     heel = np.full(2, np.nan)
     toe = np.full(2, np.nan)
     if state.plane is not None:
@@ -709,6 +741,15 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
             start=np.asarray(cal.start, dtype=float),
             end=np.asarray(cal.end, dtype=float),
         )
+        lat = None
+        if ok and state.params["knee_plane"] == "sagittal":
+            # the walkway axis, as the summary takes it (its fallback needs the trial's
+            # markers: without a walking line the live angle stays 3D)
+            try:
+                lat = gc.lateral_axis(plane, gc.walking_axis(state.start, state.end, plane))
+            except ValueError:
+                lat = None
+        state = dataclasses.replace(state, lateral=lat)
     rec = FrameRec(
         h,
         np.array(msg.position, dtype=float),

@@ -279,3 +279,18 @@ def test_local_linear_keeps_a_line_and_smooths_noise():
     x = line.copy()
     x[5] = np.nan
     assert np.isnan(gc.local_linear(t, x, 0.3)[5])
+
+
+def test_sagittal_knee_flexion_ignores_the_lateral_coordinate() -> None:
+    # Thigh and shank in the x-y (sagittal) plane, 30 deg of flexion; the knee marker then
+    # pushed 80 mm across the plane (a depth error seen from the side).
+    hip = np.array([0.0, 400.0, 0.0])
+    knee = np.array([0.0, 0.0, 0.0])
+    ankle = 400.0 * np.array([np.sin(np.radians(30)), -np.cos(np.radians(30)), 0.0])
+    lateral = np.array([0.0, 0.0, 1.0])
+    shifted = knee + np.array([0.0, 0.0, 80.0])
+    assert gc.knee_flexion(hip, knee, ankle) == pytest.approx(30.0)
+    assert abs(gc.knee_flexion(hip, shifted, ankle) - 30.0) > 5.0  # the 3D angle moves
+    assert gc.knee_flexion(hip, shifted, ankle, lateral) == pytest.approx(30.0)
+    plane = np.array([0.0, 1.0, 0.0, 0.0])  # floor normal y, walking along x
+    assert np.allclose(np.abs(gc.lateral_axis(plane, np.array([1.0, 0.0, 0.0]))), [0, 0, 1])
