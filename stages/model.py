@@ -1,10 +1,10 @@
 """Stage ``model``: the person-centric subject model from the static recording (Sec. IV-B).
 
-The subject stands still, side-on, on the walking line. At the end of the static trial the
-frame showing the most body blobs is taken as the key frame, each of its blobs smoothed by
-the median of its matches (within 25 mm) over the trial, transients dropped, and that pose
-is labelled by layout rules (height above the floor plane, order along the walking axis,
-near/far by depth; :func:`label_pose`). The model:
+The subject stands still, side-on, on the walking line. At the end of the static trial
+every frame is labelled by layout rules (height above the floor plane, order along the
+walking axis, near/far by twins: :func:`label_pose`) and the pose is the per-marker
+consensus of the frames (:func:`consensus_pose`), so that no single frame, with an extra
+blob (a split far toe, a hand) or a missing one, decides the model. The model:
 
 - ``reference``: the standing pose, camera mm (20, 3), NaN = not seen;
 - ``distances``: the inter-marker distances (20, 20), mm;
@@ -30,6 +30,7 @@ Y down, Z forward, right-handed).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
@@ -93,6 +94,25 @@ CHAIN: dict[str, tuple[str, ...]] = {
     "ASI": ("PSI", "HIP"),
     "PSI": ("ASI", "HIP"),
 }
+
+# Layout rules of :func:`label_pose`, as fractions of the shoulder height H (about 1450 mm):
+# twins (near and far marker of a site) differ by under TWIN_TOL_FRAC * H in forward
+# position and height (the adult heel is 0.04 H behind the ankle); a pelvis-band blob
+# further than STRAY_PELVIS_FRAC * H beyond the template's pelvis span (PSI..ASI) from the
+# shoulder, or any blob beyond the whole body's span (PSI..TOE) by STRAY_BODY_FRAC * H, is
+# a stray (the bundled crouched subject's knee is 0.27 H ahead of the shoulder, a stray hand
+# 0.41 H); an untwinned foot blob further than FAR_FOOT_FRAC * H in depth beyond the near
+# foot is the far foot.
+TWIN_TOL_FRAC = 0.025
+# Static frames agree on a marker when their labelled positions lie within this many marker
+# diameters (forward, height) of the median over the frames.
+CONSENSUS_DIAMETERS = 2.0
+# ASI and PSI of a standing subject differ in height by under PELVIS_LEVEL_FRAC * H (a
+# 15 degree pelvic tilt moves them by about 0.04 H).
+PELVIS_LEVEL_FRAC = 0.08
+STRAY_PELVIS_FRAC = 0.12
+STRAY_BODY_FRAC = 0.25
+FAR_FOOT_FRAC = 0.08
 
 PARAMS = ParamSet(
     NAME,
@@ -254,17 +274,24 @@ def label_pose(
         (as fractions of the shoulder height) are used, to cut the body into bands.
     gate_sigma : unused by the rules; kept for the template-based interface.
 
+    Used by :func:`consensus_pose` on every static frame.
+
     Returns
     -------
     (20,) int: blob index per marker, -1 = not seen.
 
-    Rules (side view, subject standing): the shoulder is the highest body blob; the
-    body's mid-plane lies between the near and far ASI (or a default lateral offset from
-    the shoulder), splitting near from far. Pelvis band: the near HIP is the lowest near
-    blob (when clearly lower), then PSI is the rearmost and ASI the foremost; far PSI/ASI
-    likewise. Thigh band: THI above KNE. Shank/foot band: TIB is the highest near blob
-    above the ankle band; of the low near blobs TOE is the foremost, ANK the highest of the
-    rest and HEE the last; the far heel and toe are the rearmost and foremost low far blobs.
+    Rules (side view, subject standing; H = shoulder height): the shoulder is the top
+    body blob nearest the camera. Blobs beyond the template's forward span from the
+    shoulder (pelvis band: PSI..ASI + STRAY_PELVIS_FRAC * H; any: PSI..TOE +
+    STRAY_BODY_FRAC * H) are strays. Near or far: a blob is far only behind a near twin
+    (same forward position and height within TWIN_TOL_FRAC * H; depth alone is too noisy),
+    or, on the floor, more than FAR_FOOT_FRAC * H beyond the near foot. Pelvis band: the
+    near HIP is the lowest near blob (when clearly lower), PSI the rearmost and ASI the
+    foremost within PELVIS_LEVEL_FRAC * H of the PSI's height; far PSI/ASI likewise. Thigh
+    band: THI above KNE. Shank/foot band: TIB is the highest near blob above the ankle
+    band; of the low near blobs TOE is the foremost, ANK and HEE the rest by the
+    template's forward and height gaps; the far heel and toe are the rearmost and
+    foremost low far blobs.
     """
     del gate_sigma
     out = np.full(20, -1)
@@ -295,17 +322,35 @@ def label_pose(
     lo_leg = 0.5 * (frac["TIB"] + frac["KNE"]) * H
     # Ankle, heel and toe sit below ~7% of shoulder height, a tibia marker above ~10%.
     lo_shank = 0.085 * H
-    pel = np.flatnonzero((h > lo_pel) & (h < hi_pel))
-    # Mid-plane: the near shoulder is about its lateral offset in front of it.
-    e_mid = e[sho] + layout[SITES.index("SHO"), 2] * H / H0
-    if len(pel) >= 2:
-        # Near and far ASI bracket it: the largest gap in depth among the pelvis blobs.
-        es = np.sort(e[pel])
-        gaps = np.diff(es)
-        g = int(np.argmax(gaps))
-        if gaps[g] > 0.05 * H:
-            e_mid = 0.5 * (es[g] + es[g + 1])
-    is_near = e < e_mid
+    # A standing subject's markers lie within the template's forward span around the
+    # shoulder (PSI rearmost, TOE foremost) plus a margin for posture and proportions;
+    # a blob beyond it at body height is a stray (a hand, a reflector) within the cluster.
+    rel_f = facing * (layout[:, 0] - layout[SITES.index("SHO"), 0]) * H / H0
+    pel_f = rel_f[[SITES.index(x) for x in ("ASI", "PSI", "HIP")]]
+    df = f - f[sho]
+    # Knees and feet reach further forward in a crouched stance than the pelvis can.
+    inside = (df > rel_f.min() - STRAY_BODY_FRAC * H) & (df < rel_f.max() + STRAY_BODY_FRAC * H)
+    in_pel = (df > pel_f.min() - STRAY_PELVIS_FRAC * H) & (df < pel_f.max() + STRAY_PELVIS_FRAC * H)
+    pel = np.flatnonzero((h > lo_pel) & (h < hi_pel) & in_pel)
+    # Near or far: in a side view a far marker sits behind its near twin (same forward
+    # position and height, further in depth); a blob without such a twin is on the near
+    # side, whatever its depth (a marker's depth is noisy, often by 50-100 mm).
+    is_near = np.ones(len(P), bool)
+    tol = TWIN_TOL_FRAC * H
+
+    def twins(cand: np.ndarray) -> None:
+        for i in cand:
+            for j in cand:
+                if (
+                    i != j
+                    and e[j] > e[i]
+                    and abs(f[i] - f[j]) < tol
+                    and abs(h[i] - h[j]) < tol
+                    and is_near[i]
+                ):
+                    is_near[j] = False
+
+    twins(pel)
 
     def put(name: str, i: int) -> None:
         out[MARKER_INDEX[name]] = ok[i]
@@ -321,11 +366,15 @@ def label_pose(
         if len(c) >= 2:
             c = sorted(c, key=lambda i: f[i])
             put(f"{side}_PSI", c[0])
-            put(f"{side}_ASI", c[-1])
+            # The pelvis stands about level (tilt moves ASI and PSI by a few cm): a blob
+            # far above or below the PSI is a hand or a stray, not the ASI.
+            level = [i for i in c[1:] if abs(h[i] - h[c[0]]) < PELVIS_LEVEL_FRAC * H]
+            if level:
+                put(f"{side}_ASI", level[-1])
         elif len(c) == 1:
             # One pelvis blob: front or back of the pelvis, judged against the shoulder.
             put(f"{side}_ASI" if f[c[0]] > f[sho] else f"{side}_PSI", c[0])
-    leg = [i for i in np.flatnonzero((h > lo_leg) & (h <= lo_pel)) if is_near[i]]
+    leg = [i for i in np.flatnonzero((h > lo_leg) & (h <= lo_pel) & inside) if is_near[i]]
     leg = sorted(leg, key=lambda i: -h[i])
     if len(leg) >= 2:
         put(f"{near}_THI", leg[0])
@@ -333,46 +382,120 @@ def label_pose(
     elif len(leg) == 1:
         th, kn = frac["THI"] * H, frac["KNE"] * H
         put(f"{near}_THI" if abs(h[leg[0]] - th) < abs(h[leg[0]] - kn) else f"{near}_KNE", leg[0])
-    shank = [i for i in np.flatnonzero((h > lo_shank) & (h <= lo_leg)) if is_near[i]]
+    shank = [i for i in np.flatnonzero((h > lo_shank) & (h <= lo_leg) & inside) if is_near[i]]
     if shank:
         put(f"{near}_TIB", max(shank, key=lambda i: h[i]))
-    # The feet sit closer to the mid-plane than the pelvis: split the low blobs by their
-    # own largest depth gap (when clear), not by the pelvis mid-plane.
-    low_all = np.flatnonzero(h <= lo_shank)
-    foot_near = is_near.copy()
-    if len(low_all) >= 2:
-        es = np.sort(e[low_all])
-        gaps = np.diff(es)
-        g = int(np.argmax(gaps))
-        if gaps[g] > 40.0:
-            foot_near[low_all] = e[low_all] <= es[g]
-    for side, sel in ((near, foot_near), (far, ~foot_near)):
-        low = [i for i in np.flatnonzero(h <= lo_shank) if sel[i]]
-        if not low:
+    # Feet: twins as for the pelvis (the far heel or toe behind the near one); a low blob
+    # without a twin is near unless it lies clearly beyond the near foot in depth.
+    low_all = np.flatnonzero((h <= lo_shank) & inside)
+    twins(low_all)
+    if is_near[low_all].sum() >= 2:
+        e_foot = float(np.median(e[low_all[is_near[low_all]]]))
+        for i in low_all:
+            if is_near[i] and e[i] > e_foot + FAR_FOOT_FRAC * H:
+                is_near[i] = False
+    near_low = sorted((i for i in low_all if is_near[i]), key=lambda i: f[i])
+    far_low = sorted((i for i in low_all if not is_near[i]), key=lambda i: f[i])
+    if near_low:
+        put(f"{near}_TOE", near_low[-1])
+        rest = near_low[:-1]
+        if len(rest) >= 2:
+            # Ankle and heel: the ankle is ahead of and above the heel; weigh both gaps by
+            # the template's (forward 60 mm, height 33 mm for an adult), as heights of foot
+            # markers are noisy.
+            gap_f = (layout[SITES.index("ANK"), 0] - layout[SITES.index("HEE"), 0]) * H / H0
+            gap_h = (layout[SITES.index("ANK"), 1] - layout[SITES.index("HEE"), 1]) * H / H0
+            a, b = rest[-1], rest[-2]
+            if (f[a] - f[b]) / gap_f + (h[a] - h[b]) / gap_h < 0:
+                a, b = b, a
+            put(f"{near}_ANK", a)
+            put(f"{near}_HEE", min((i for i in rest if i != a), key=lambda i: f[i]))
+        # One blob between heel and ankle is likely the two merged: neither is measured.
+    if len(far_low) >= 2:
+        put(f"{far}_HEE", far_low[0])
+        put(f"{far}_TOE", far_low[-1])
+    elif len(far_low) == 1:
+        # One far foot blob: heel or toe, whichever near one it lines up with.
+        nt, nh = out[MARKER_INDEX[f"{near}_TOE"]], out[MARKER_INDEX[f"{near}_HEE"]]
+        ref_t = f[list(ok).index(nt)] if nt >= 0 else None
+        ref_h = f[list(ok).index(nh)] if nh >= 0 else None
+        i = far_low[0]
+        if ref_t is not None and (ref_h is None or abs(f[i] - ref_t) < abs(f[i] - ref_h)):
+            put(f"{far}_TOE", i)
+        elif ref_h is not None:
+            put(f"{far}_HEE", i)
+    return out
+
+
+def consensus_pose(
+    floors: list[np.ndarray],
+    facing: int,
+    layout: np.ndarray,
+    marker_diameter_mm: float = 25.0,
+    gate_sigma: float = 4.0,
+) -> np.ndarray:
+    """Standing pose labelled by the consensus of the static frames (Sec. IV-B, departure).
+
+    Parameters
+    ----------
+    floors : per frame, (N, 3) floor coordinates (a, e, h) of the blobs, mm.
+    facing, layout, gate_sigma : as for :func:`label_pose`.
+    marker_diameter_mm : two markers closer than this (forward, height) are one blob.
+
+    Returns
+    -------
+    (20, 3) floor positions in MARKER_NAMES order, NaN = not labelled.
+
+    Every frame is labelled by :func:`label_pose`. Per marker, the labelled positions
+    within ``CONSENSUS_DIAMETERS`` marker diameters (forward and height; depth is noisy) of
+    their median agree; a frame whose labels mostly disagree is dropped and the medians
+    recomputed. A marker is kept if at least a third of the kept frames agree on it (a
+    hand, a glint or a split that comes and goes is outvoted); two markers on one position
+    keep the one more frames agree on. The position is the median of the agreeing labels.
+    """
+    out = np.full((20, 3), np.nan)
+    labs = []
+    for P in floors:
+        idx = label_pose(P, facing, layout, gate_sigma) if len(P) else np.full(20, -1)
+        q = np.full((20, 3), np.nan)
+        q[idx >= 0] = P[idx[idx >= 0]]
+        labs.append(q)
+    if not labs:
+        return out
+    L = np.stack(labs)  # (F, 20, 3)
+    tol = CONSENSUS_DIAMETERS * marker_diameter_mm
+    keep = np.ones(len(L), bool)
+    for _ in range(2):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN markers: never seen
+            med = np.nanmedian(L[keep], axis=0)
+        dev = np.hypot(L[..., 0] - med[None, :, 0], L[..., 2] - med[None, :, 2])
+        seen = np.isfinite(dev)
+        agree = seen & (dev < tol)
+        # A frame agreeing on under half of its labels is an outlier frame.
+        frac = agree.sum(axis=1) / np.maximum(seen.sum(axis=1), 1)
+        new_keep = frac >= 0.5
+        if not new_keep.any() or (new_keep == keep).all():
+            break
+        keep = new_keep
+    agree &= keep[:, None]
+    votes = agree.sum(axis=0)
+    for i in np.flatnonzero(votes >= max(keep.sum() / 3.0, 1.0)):
+        out[i] = np.median(L[agree[:, i], i], axis=0)
+    # One position, two labels in different frames (near in some, far in others): most
+    # votes win. Twins (near and far heel side by side) are both labelled in the same
+    # frames, on two blobs, and both stay.
+    order = np.argsort(-votes)
+    for x, i in enumerate(order):
+        if not np.isfinite(out[i]).all():
             continue
-        low = sorted(low, key=lambda i: f[i])
-        if side == near:
-            put(f"{side}_TOE", low[-1])
-            rest = low[:-1]
-            if len(rest) >= 2:
-                ank = max(rest, key=lambda i: h[i])
-                put(f"{side}_ANK", ank)
-                put(f"{side}_HEE", min((i for i in rest if i != ank), key=lambda i: f[i]))
-            # One blob between heel and ankle is likely the two merged: neither is measured.
-        elif len(low) >= 2:
-            put(f"{side}_HEE", low[0])
-            put(f"{side}_TOE", low[-1])
-        else:
-            # One far foot blob: heel or toe, whichever near one it lines up with.
-            nt, nh = out[MARKER_INDEX[f"{near}_TOE"]], out[MARKER_INDEX[f"{near}_HEE"]]
-            ref_t = f[list(ok).index(nt)] if nt >= 0 else None
-            ref_h = f[list(ok).index(nh)] if nh >= 0 else None
-            if ref_t is not None and (
-                ref_h is None or abs(f[low[0]] - ref_t) < abs(f[low[0]] - ref_h)
-            ):
-                put(f"{side}_TOE", low[0])
-            elif ref_h is not None:
-                put(f"{side}_HEE", low[0])
+        for j in order[x + 1 :]:
+            if not np.isfinite(out[j]).all():
+                continue
+            close = np.hypot(*(out[i] - out[j])[[0, 2]]) < marker_diameter_mm
+            both = int((agree[:, i] & agree[:, j]).sum())
+            if close and both < 0.5 * min(votes[i], votes[j]):
+                out[j] = np.nan
     return out
 
 
@@ -429,27 +552,11 @@ def build_model(
     votes += [_facing_from_mass(f[np.isfinite(f).all(axis=1)], sho_h) for f in floors]
     facing = 1 if sum(votes) >= 0 else -1
     near = "R" if facing > 0 else "L"
-    # The subject stands still: take the frame that shows the most body blobs as the key
-    # frame, smooth each of its blobs with the median of its matches (within 25 mm) in the
-    # other frames, and label that one pose.
-    floor_ref = np.full((20, 3), np.nan)
+    # The subject stands still: label every frame on its own and keep, per marker, the
+    # consensus of the frames (see consensus_pose), so that one frame with an extra or a
+    # missing blob cannot mislabel the model.
     valid = [f[np.isfinite(f).all(axis=1)] for f in floors]
-    sizes = [int(body_cluster(f, 0.4 * sho_h).sum()) if len(f) else 0 for f in valid]
-    if sizes and max(sizes) > 0:
-        key = valid[int(np.argmax(sizes))]
-        smooth = key.copy()
-        for b in range(len(key)):
-            matches = []
-            for f in valid:
-                if len(f):
-                    dd = np.linalg.norm(f - key[b], axis=1)
-                    if dd.min() < 25.0:
-                        matches.append(f[np.argmin(dd)])
-            # A blob seen in under a third of the frames is a transient (a hand, a glint).
-            smooth[b] = np.median(matches, axis=0) if len(matches) >= len(valid) / 3 else np.nan
-        idx = label_pose(smooth, facing, layout, gate_sigma)
-        for i in np.flatnonzero(idx >= 0):
-            floor_ref[i] = smooth[idx[i]]
+    floor_ref = consensus_pose(valid, facing, layout, marker_diameter_mm, gate_sigma)
     reference = frame.to_camera(floor_ref)
     diff = reference[:, None, :] - reference[None, :, :]
     distances = np.linalg.norm(diff, axis=2)

@@ -341,9 +341,16 @@ def run_markers_level(
 
 
 def run_pipeline_level(
-    trial: str, seed: int, params: Mapping[str, Any] | None = None, jobs: int = 2
+    trial: str,
+    seed: int,
+    params: Mapping[str, Any] | None = None,
+    jobs: int = 2,
+    stage_params: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any], np.ndarray, np.ndarray, np.ndarray, float]:
-    """Simulate, run the whole graph inline; return (doc, truth, t, knee, pig, label_pct)."""
+    """Simulate, run the whole graph inline; return (doc, truth, t, knee, pig, label_pct).
+
+    ``stage_params`` : per stage, parameter overrides (``--param stage.name=value``).
+    """
     from gaitflow.commands.demo import rendered_frames
     from gaitflow.sim import SimConfig, simulate_session
     from gaitflow.stages.graph import load
@@ -363,7 +370,9 @@ def run_pipeline_level(
         elif stream == "labelled" and msg.header.trial == name:
             labelled[msg.header.frame] = msg
 
-    pipe = InlinePipeline(graph, params={"gait": dict(params or {})}, sink=sink)
+    overrides = {k: dict(v) for k, v in (stage_params or {}).items()}
+    overrides["gait"] = {**overrides.get("gait", {}), **dict(params or {})}
+    pipe = InlinePipeline(graph, params=overrides, sink=sink)
     _, frames = rendered_frames(trial, seed, True, jobs, with_truth=True)
     for raw, truth in frames:
         if raw.header.trial == name:
@@ -414,6 +423,23 @@ def _nanmean(xs: Sequence[float]) -> float:
     return float(np.mean(v)) if v else float("nan")
 
 
+def _stage_params(items: Sequence[str] | None) -> dict[str, dict[str, Any]]:
+    """``["detect.split_cores=true", ...]`` -> ``{"detect": {"split_cores": True}}``.
+
+    Values are parsed as YAML scalars (true, 0.5, text); the stage's ParamSet checks them.
+    """
+    import yaml
+
+    out: dict[str, dict[str, Any]] = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        stage, dot, name = key.partition(".")
+        if not sep or not dot or not stage or not name:
+            raise SystemExit(f"bench gait: --param {item!r} is not stage.name=value")
+        out.setdefault(stage, {})[name] = yaml.safe_load(value)
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from gaitflow.sim import list_trials
 
@@ -429,10 +455,13 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         label = float("nan")
         if args.level == "markers":
-            doc, truth, t, knee, pig = run_markers_level(trial, args.seed, args.noise_mm, params)
+            gait_params = {**params, **_stage_params(args.param).get("gait", {})}
+            doc, truth, t, knee, pig = run_markers_level(
+                trial, args.seed, args.noise_mm, gait_params
+            )
         else:
             doc, truth, t, knee, pig, label = run_pipeline_level(
-                trial, args.seed, params, args.jobs
+                trial, args.seed, params, args.jobs, _stage_params(args.param)
             )
         sc = score_trial(doc, truth, t, knee, pig)
         sc["labelling_pct"] = label
@@ -572,6 +601,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=2, help="pipeline level: render processes")
     p.add_argument("--xi", type=float, default=None, help="override Alg. 6 xi = phi")
     p.add_argument("--refine", choices=("velocity", "none"), default=None)
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="STAGE.NAME=VALUE",
+        help="pipeline level: a stage parameter override, e.g. detect.split_cores=true",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 

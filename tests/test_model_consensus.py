@@ -1,0 +1,116 @@
+"""Static-pose labelling of the subject model: layout rules and the consensus over frames.
+
+The pose is the stature-scaled template laid out on the floor (near side and far heel and
+toe visible, as in a side view), perturbed the ways the detector's output is: a split far
+toe, a stray hand, noisy depth, a frame with an extra blob.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gaitflow.stages.model import body_to_floor, consensus_pose, label_pose, template_layout
+
+from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+
+LAYOUT = template_layout(1.0)
+SEEN = [i for i, n in enumerate(MARKER_NAMES) if n.startswith("R_") or n in ("L_HEE", "L_TOE")]
+
+
+def _pose(rng: np.random.Generator | None = None, noise_mm: float = 0.0) -> np.ndarray:
+    """(20, 3) floor positions of a subject facing +a (right side near), NaN = unseen."""
+    P = np.full((20, 3), np.nan)
+    P[SEEN] = body_to_floor(LAYOUT, np.array([2000.0, 0.0, 0.0]), 1)[SEEN]
+    if rng is not None:
+        P[SEEN] += rng.normal(0.0, noise_mm, (len(SEEN), 3))
+    return P
+
+
+def _blobs(P: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The visible markers as a shuffled blob list (N, 3)."""
+    return P[SEEN][order]
+
+
+def _named(idx: np.ndarray, order: np.ndarray) -> dict[str, str]:
+    """Marker label -> true marker of the blob it got."""
+    return {MARKER_NAMES[i]: MARKER_NAMES[SEEN[order[b]]] for i, b in enumerate(idx) if b >= 0}
+
+
+def test_label_pose_template_pose_fully_labelled() -> None:
+    order = np.random.default_rng(0).permutation(len(SEEN))
+    got = _named(label_pose(_blobs(_pose(), order), 1, LAYOUT), order)
+    assert got == {MARKER_NAMES[i]: MARKER_NAMES[i] for i in SEEN}
+
+
+def test_near_marker_with_deep_depth_stays_near() -> None:
+    # Depth of a marker is noisy by 50-100 mm: the near ASI and the near ankle measured
+    # 120 and 100 mm too far have no twin in front of them, so they stay near-side markers.
+    P = _pose()
+    P[MARKER_INDEX["R_ASI"], 1] += 120.0
+    P[MARKER_INDEX["R_ANK"], 1] += 100.0
+    order = np.arange(len(SEEN))
+    got = _named(label_pose(_blobs(P, order), 1, LAYOUT), order)
+    assert got == {MARKER_NAMES[i]: MARKER_NAMES[i] for i in SEEN}
+
+
+def test_split_far_toe_does_not_shift_leg_labels() -> None:
+    # The detector's split_cores separates the far toe from the near one: an extra blob
+    # behind the near toe. It is the far toe; the leg and the near foot keep their labels.
+    P = _pose()
+    toe = P[MARKER_INDEX["R_TOE"]].copy()
+    far_toe = toe + np.array([8.0, 80.0, 12.0])
+    blobs = np.vstack([P[SEEN], far_toe])
+    idx = label_pose(blobs, 1, LAYOUT)
+    for name in ("R_THI", "R_KNE", "R_TIB", "R_ANK", "R_HEE", "R_TOE"):
+        assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+    assert idx[MARKER_INDEX["L_TOE"]] in (len(SEEN), SEEN.index(MARKER_INDEX["L_TOE"]))
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 150.0), (450.0, 0.0, 0.0)])
+def test_stray_at_pelvis_height_is_not_the_asi(offset: tuple[float, float, float]) -> None:
+    # A hand above the pelvis (150 mm above the ASI) or a reflector 450 mm ahead of it.
+    P = _pose()
+    stray = P[MARKER_INDEX["R_ASI"]] + np.array(offset)
+    blobs = np.vstack([P[SEEN], stray])
+    idx = label_pose(blobs, 1, LAYOUT)
+    assert idx[MARKER_INDEX["R_ASI"]] == SEEN.index(MARKER_INDEX["R_ASI"])
+    assert len(SEEN) not in idx
+
+
+def test_consensus_outvotes_bad_frames_and_transients() -> None:
+    rng = np.random.default_rng(7)
+    frames = []
+    for k in range(16):
+        P = _pose(rng, 2.0)
+        blobs = P[SEEN]
+        if k < 4:
+            # A transient blob between knee and thigh in a few frames: a hand passing.
+            mid = 0.5 * (P[MARKER_INDEX["R_THI"]] + P[MARKER_INDEX["R_KNE"]])
+            blobs = np.vstack([blobs, mid + np.array([0.0, 0.0, -60.0])])
+        if k == 5:
+            # One frame loses its knee: the thigh would be labelled as the knee there.
+            blobs = np.delete(blobs, SEEN.index(MARKER_INDEX["R_THI"]), axis=0)
+        frames.append(blobs)
+    ref = consensus_pose(frames, 1, LAYOUT)
+    truth = _pose()
+    for i in SEEN:
+        err = np.hypot(*(ref[i] - truth[i])[[0, 2]])
+        assert err < 5.0, MARKER_NAMES[i]
+    unseen = [i for i in range(20) if i not in SEEN]
+    assert np.isnan(ref[unseen]).all()
+
+
+def test_consensus_needs_a_third_of_the_frames() -> None:
+    # A blob behind the PSI (a far PSI peeking out) is a far PSI when a third of the frames
+    # show it, a glint when fewer do.
+    rng = np.random.default_rng(3)
+    for every, kept in ((3, True), (5, False)):
+        frames = []
+        for k in range(15):
+            P = _pose(rng, 1.0)[SEEN]
+            if k % every == 0:
+                P = np.vstack([P, _pose()[MARKER_INDEX["R_PSI"]] + np.array([5.0, 100.0, 5.0])])
+            frames.append(P)
+        ref = consensus_pose(frames, 1, LAYOUT)
+        assert np.isfinite(ref[MARKER_INDEX["R_PSI"]]).all()
+        assert np.isfinite(ref[MARKER_INDEX["L_PSI"]]).all() == kept
