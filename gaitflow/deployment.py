@@ -65,8 +65,10 @@ LINK_LEASE_MS = 3000
 # stream has one producer and Zenoh keeps a publisher's order (the edge ring keeps it
 # across link drops), so a gap is a frame that will not come (e.g. no markers found).
 # Waiting 0.25 s for it at each of label and gait stalled the next frames by ~0.5 s
-# (`gaitflow bench pipeline`); 20 ms keeps a missing frame within the 33 ms budget.
-REORDER_TIMEOUT_S = 0.02
+# (`gaitflow bench pipeline`); 20 ms still cost the frame after each gap 40 ms (20 at label,
+# 20 at gait), the slowest frames of the bench. 0: a gap is skipped as soon as the next
+# frame arrives (a frame that did arrive out of order would be dropped as late, counted).
+REORDER_TIMEOUT_S = 0.0
 # Streams that never leave the edge: simulator ground truth is for evaluation only.
 EDGE_ONLY_STREAMS = ("truth",)
 

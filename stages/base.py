@@ -9,7 +9,11 @@ A stage is a :class:`StageSpec`:
   decoded message of this frame (the joined primary inputs) and, for side inputs, to the
   latest message of that stream for the camera (or is absent). ``outputs`` is a list of
   messages to publish, in order;
-- ``finish(state) -> (state, outputs)``: optional, called at shutdown to flush.
+- ``finish(state) -> (state, outputs)``: optional, called at shutdown to flush;
+- ``after(state) -> (state, outputs)``: optional deferred work of the step just run (a
+  heavy analysis whose results are not part of this frame's output). The bus adapter runs
+  it once the step's outputs are published, so they are not delayed by it; the in-process
+  runner right after the step. Both publish the same messages in the same order.
 
 No I/O, no bus, no globals in a core: the bus adapter (``gaitflow.stages.runtime``) and the
 in-process runner (``gaitflow.stages.inline``) both drive the same spec, so they give
@@ -40,6 +44,7 @@ class StageSpec:
     init: Callable[[dict[str, Any]], Any]
     step: Callable[[Any, Inputs], StepResult]
     finish: Callable[[Any], StepResult] | None = None
+    after: Callable[[Any], StepResult] | None = None
     stateful: bool = False
     doc: str = ""
 

@@ -38,8 +38,13 @@ class StageDriver:
         params: dict[str, Any],
         max_join: int = 64,
         max_held: int = 1024,
+        defer_after: bool = False,
     ) -> None:
         self.node, self.spec, self.params = node, spec, params
+        # The core's ``after`` work: run inside ``offer`` (False), or left for the caller
+        # to run with :meth:`run_after` once it has published what ``offer`` returned.
+        self.defer_after = defer_after
+        self._after_due: list[str] = []
         self.states: dict[str, Any] = {}
         self.max_join, self.max_held = max_join, max_held
         self._join: OrderedDict[FrameKey, dict[str, Message]] = OrderedDict()
@@ -96,6 +101,9 @@ class StageDriver:
         return out
 
     def _run(self, inputs: dict[str, Message]) -> list[Message]:
+        # Deferred work of an earlier step runs before the next step, whoever drives: the
+        # next step's state includes it (held frames released together run in turn).
+        out = self.run_after()
         cam = next(iter(inputs.values())).header.camera
         full = dict(inputs)
         for s in self.node.side_inputs:
@@ -104,7 +112,21 @@ class StageDriver:
         state = self.states[cam] if cam in self.states else self.spec.init(self.params)
         self.states[cam], outputs = self.spec.step(state, full)
         self.processed += 1
-        return list(outputs)
+        out.extend(outputs)
+        if self.spec.after is not None:
+            self._after_due.append(cam)
+            if not self.defer_after:
+                out.extend(self.run_after())
+        return out
+
+    def run_after(self) -> list[Message]:
+        """The core's deferred ``after`` work for every step run since the last call."""
+        out: list[Message] = []
+        while self._after_due:
+            cam = self._after_due.pop(0)
+            self.states[cam], outputs = self.spec.after(self.states[cam])  # type: ignore[misc]
+            out.extend(outputs)
+        return out
 
     @property
     def held(self) -> int:
@@ -112,12 +134,13 @@ class StageDriver:
 
     def finish(self) -> list[Message]:
         """Flush at shutdown: the core's ``finish``; held frames are counted as dropped."""
+        pending = self.run_after()
         self.dropped += len(self._held) + len(self._join)
         self._held.clear()
         self._join.clear()
         if self.spec.finish is None:
-            return []
-        out: list[Message] = []
+            return pending
+        out: list[Message] = pending
         for cam in sorted(self.states):
             self.states[cam], outputs = self.spec.finish(self.states[cam])
             out.extend(outputs)

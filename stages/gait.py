@@ -191,6 +191,10 @@ class GaitState:
     summarised_until: float = float("-inf")  # end of the last pass given its own summary
     # the sagittal plane's normal for the live knee angle (``knee_plane`` = sagittal)
     lateral: np.ndarray | None = None
+    # the live event search is due after this frame's message is out (``after``), and the
+    # events it found, published with the next frame's message
+    live_due: bool = False
+    pending: tuple[tuple[str, str, float], ...] = ()
     # results of the recent analyses by a digest of their exact inputs (see ``Memo``)
     memo: tuple[Mapping[bytes, Any], ...] = ()
     # the resampled markers of the last analysis of the whole trial (``analyse(series=)``)
@@ -617,7 +621,14 @@ def _gait_frame(state: GaitState, rec: FrameRec, events: list) -> GaitFrame:
 def _reset(state: GaitState) -> GaitState:
     """The state with no open trial (the parameters and calibration stay)."""
     return dataclasses.replace(
-        state, frames=(), emitted=(), summarised_until=float("-inf"), memo=(), series=None
+        state,
+        frames=(),
+        emitted=(),
+        summarised_until=float("-inf"),
+        memo=(),
+        series=None,
+        live_due=False,
+        pending=(),
     )
 
 
@@ -758,52 +769,68 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
         str(msg.near_side),
     )
     rec = _with_record(rec, state.frames[0].header if state.frames else h)
-    state = dataclasses.replace(state, frames=(*state.frames, rec))
-    events: list = []
+    # live events found after the previous frame go out with this one
+    events = [list(e) for e in state.pending]
+    state = dataclasses.replace(state, frames=(*state.frames, rec), pending=())
     every = state.params["live_every"]
     n = len(state.frames)
-    if every > 0 and n % every == 0 and state.plane is not None and not h.last:
-        # live events from the recent frames only (times stay on the trial's clock), so the
-        # cost per frame does not grow with the trial
-        recent = state.frames[-int(state.params["live_window_s"] * 30) :]
-        whole = len(recent) == n
-        a = analyse(
-            recent,
-            state.plane,
-            state.start,
-            state.end,
-            state.params,
-            live=True,
-            memo=state.memo,
-            series=_series(state) if whole else None,
-        )
-        now = float(a.t[-1])
-        events = _new_events(state, a.events, now - state.params["live_delay_s"])
-        state = dataclasses.replace(
-            state,
-            emitted=state.emitted + tuple(map(tuple, events)),
-            memo=_remember(state, a),
-            series=a.series if whole else None,
-        )
-        # a pass that ended well before now is complete: summarise it (once)
-        if any(state.summarised_until < ps["end_s"] < now - 1.0 for ps in a.passes):
-            full = _analyse_trial(state)
-            state = dataclasses.replace(
-                state, memo=_remember(state, full), series=full.series or None
-            )
-            for i, ps in enumerate(full.passes):
-                if state.summarised_until < ps["end_s"] < now - 1.0:
-                    pdoc = _document(
-                        state.frames, full, state.params, i, _frame_records(state.frames, full)
-                    )
-                    out.append(TrialSummary.follow(h, results=pdoc, warnings=pdoc["warnings"]))
-                    state = dataclasses.replace(state, summarised_until=ps["end_s"])
+    due = every > 0 and n % every == 0 and state.plane is not None and not h.last
     if h.last:
         closing_state, closed, final_events = _close(state)
         out.insert(0, _gait_frame(state, rec, events + final_events))
         out.extend(closed)
         return closing_state, out
     out.insert(0, _gait_frame(state, rec, events))
+    return dataclasses.replace(state, live_due=due), out
+
+
+def after(state: GaitState) -> tuple[GaitState, list[Message]]:
+    """The live event search and pass summaries due after the frame just published.
+
+    Deferred (``StageSpec.after``) so that a frame's ``gait`` message never waits for them:
+    the events found here go out with the next frame's message (live events are at least
+    ``live_delay_s`` old anyway), a pass summary as its own message now.
+    """
+    if not state.live_due or not state.frames:
+        return state, []
+    state = dataclasses.replace(state, live_due=False)
+    out: list[Message] = []
+    h = state.frames[-1].header
+    n = len(state.frames)
+    # live events from the recent frames only (times stay on the trial's clock), so the
+    # cost per frame does not grow with the trial
+    recent = state.frames[-int(state.params["live_window_s"] * 30) :]
+    whole = len(recent) == n
+    a = analyse(
+        recent,
+        state.plane,
+        state.start,
+        state.end,
+        state.params,
+        live=True,
+        memo=state.memo,
+        series=_series(state) if whole else None,
+    )
+    now = float(a.t[-1])
+    events = _new_events(state, a.events, now - state.params["live_delay_s"])
+    state = dataclasses.replace(
+        state,
+        emitted=state.emitted + tuple(map(tuple, events)),
+        pending=tuple(map(tuple, events)),
+        memo=_remember(state, a),
+        series=a.series if whole else None,
+    )
+    # a pass that ended well before now is complete: summarise it (once)
+    if any(state.summarised_until < ps["end_s"] < now - 1.0 for ps in a.passes):
+        full = _analyse_trial(state)
+        state = dataclasses.replace(state, memo=_remember(state, full), series=full.series or None)
+        for i, ps in enumerate(full.passes):
+            if state.summarised_until < ps["end_s"] < now - 1.0:
+                pdoc = _document(
+                    state.frames, full, state.params, i, _frame_records(state.frames, full)
+                )
+                out.append(TrialSummary.follow(h, results=pdoc, warnings=pdoc["warnings"]))
+                state = dataclasses.replace(state, summarised_until=ps["end_s"])
     return state, out
 
 
@@ -819,6 +846,7 @@ SPEC = StageSpec(
     init=init,
     step=step,
     finish=finish,
+    after=after,
     stateful=True,
     doc=__doc__ or "",
 )

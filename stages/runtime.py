@@ -446,7 +446,8 @@ class StageRuntime:
         self.bus, self.node, self.spec = bus, node, spec
         self.opt = options or RuntimeOptions()
         self.metrics = metrics or StageMetrics(node.name, self.opt.worker_id)
-        self.driver = StageDriver(node, spec, params)
+        # The core's ``after`` work runs once the step's outputs are out (see _offer).
+        self.driver = StageDriver(node, spec, params, defer_after=True)
         self.queue = BoundedQueue(
             self.opt.queue_size, self.opt.queue_policy, self.opt.block_timeout_s
         )
@@ -577,6 +578,13 @@ class StageRuntime:
             if dt > self.opt.budget_s:
                 self.metrics.over_budget.inc()
         self._publish(outs)
+        try:
+            later = self.driver.run_after()
+        except GaitflowError as exc:
+            self.metrics.errors.inc()
+            log.warning("%s: deferred work after %s failed: %s", self.node.name, stream, exc)
+            return
+        self._publish(later)
 
     def _sync_counts(self) -> None:
         for name, now, metric in (
