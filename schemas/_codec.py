@@ -267,6 +267,21 @@ class _Reader:
                 raise SchemaError(self.stream, part, f"malformed msgpack: {exc}") from exc
 
 
+def _bin_at(buf: memoryview | bytes, offset: int, stream: str, name: str) -> tuple[int, int]:
+    """(length, offset of the bytes) of the msgpack bin at ``offset``; checked to fit ``buf``.
+
+    We write bin32; other msgpack writers pick the smallest bin type, accept those too.
+    """
+    lenfmt = _BIN_LEN.get(buf[offset]) if offset < len(buf) else None
+    if lenfmt is None or offset + 1 + struct.calcsize(lenfmt) > len(buf):
+        raise SchemaError(stream, name, "array bytes missing or truncated")
+    (nbytes,) = struct.unpack_from(lenfmt, buf, offset + 1)
+    offset += 1 + struct.calcsize(lenfmt)
+    if offset + nbytes > len(buf):
+        raise SchemaError(stream, name, "array bytes truncated")
+    return nbytes, offset
+
+
 def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
     """Decode a payload of stream ``cls``; raise SchemaError naming the field at fault."""
     stream = cls.STREAM
@@ -314,13 +329,7 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
     arrays: dict[str, np.ndarray] = {}
     if plan is not None:
         for name, dt, shp, want_nbytes in plan:
-            lenfmt = _BIN_LEN.get(buf[offset]) if offset < len(buf) else None
-            if lenfmt is None or offset + 1 + struct.calcsize(lenfmt) > len(buf):
-                raise SchemaError(stream, name, "array bytes missing or truncated")
-            (nbytes,) = struct.unpack_from(lenfmt, buf, offset + 1)
-            offset += 1 + struct.calcsize(lenfmt)
-            if offset + nbytes > len(buf):
-                raise SchemaError(stream, name, "array bytes truncated")
+            nbytes, offset = _bin_at(buf, offset, stream, name)
             if nbytes != want_nbytes:
                 raise SchemaError(stream, name, f"{nbytes} bytes do not hold {dt.str} {list(shp)}")
             arrays[name] = np.frombuffer(
@@ -333,14 +342,7 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
         if not (isinstance(d, list) and len(d) == 3 and isinstance(d[0], str)):
             raise SchemaError(stream, "descriptors", f"malformed descriptor {d!r}")
         name, dtype, shape = d
-        # We write bin32; other msgpack writers pick the smallest bin type, accept those too.
-        lenfmt = _BIN_LEN.get(buf[offset]) if offset < len(buf) else None
-        if lenfmt is None or offset + 1 + struct.calcsize(lenfmt) > len(buf):
-            raise SchemaError(stream, name, "array bytes missing or truncated")
-        (nbytes,) = struct.unpack_from(lenfmt, buf, offset + 1)
-        offset += 1 + struct.calcsize(lenfmt)
-        if offset + nbytes > len(buf):
-            raise SchemaError(stream, name, "array bytes truncated")
+        nbytes, offset = _bin_at(buf, offset, stream, name)
         # Only plain numeric dtypes in numpy's ``dtype.str`` form (what encode writes), and
         # the size check in Python ints: np.prod would overflow on hostile shapes.
         if not (isinstance(dtype, str) and _DTYPE_STR.fullmatch(dtype)):

@@ -48,6 +48,14 @@ class StageSpec:
     stateful: bool = False
     doc: str = ""
 
+    def run(self, state: Any, inputs: Inputs) -> StepResult:
+        """``step`` then ``after``, as the in-process runner drives a core."""
+        state, out = self.step(state, inputs)
+        if self.after is None:
+            return state, out
+        state, later = self.after(state)
+        return state, [*out, *later]
+
 
 @dataclass(frozen=True)
 class SourceSpec:

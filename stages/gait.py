@@ -191,9 +191,7 @@ class GaitState:
     summarised_until: float = float("-inf")  # end of the last pass given its own summary
     # the sagittal plane's normal for the live knee angle (``knee_plane`` = sagittal)
     lateral: np.ndarray | None = None
-    # the live event search is due after this frame's message is out (``after``), and the
-    # events it found, published with the next frame's message
-    live_due: bool = False
+    # the events the live search (``after``) found, published with the next frame's message
     pending: tuple[tuple[str, str, float], ...] = ()
     # results of the recent analyses by a digest of their exact inputs (see ``Memo``)
     memo: tuple[Mapping[bytes, Any], ...] = ()
@@ -627,7 +625,6 @@ def _reset(state: GaitState) -> GaitState:
         summarised_until=float("-inf"),
         memo=(),
         series=None,
-        live_due=False,
         pending=(),
     )
 
@@ -772,16 +769,13 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
     # live events found after the previous frame go out with this one
     events = [list(e) for e in state.pending]
     state = dataclasses.replace(state, frames=(*state.frames, rec), pending=())
-    every = state.params["live_every"]
-    n = len(state.frames)
-    due = every > 0 and n % every == 0 and state.plane is not None and not h.last
     if h.last:
         closing_state, closed, final_events = _close(state)
         out.insert(0, _gait_frame(state, rec, events + final_events))
         out.extend(closed)
         return closing_state, out
     out.insert(0, _gait_frame(state, rec, events))
-    return dataclasses.replace(state, live_due=due), out
+    return state, out
 
 
 def after(state: GaitState) -> tuple[GaitState, list[Message]]:
@@ -791,12 +785,12 @@ def after(state: GaitState) -> tuple[GaitState, list[Message]]:
     the events found here go out with the next frame's message (live events are at least
     ``live_delay_s`` old anyway), a pass summary as its own message now.
     """
-    if not state.live_due or not state.frames:
+    every, n = state.params["live_every"], len(state.frames)
+    # due every ``live_every`` frames of an open trial (a closed one has no frames)
+    if every <= 0 or n == 0 or n % every or state.plane is None:
         return state, []
-    state = dataclasses.replace(state, live_due=False)
     out: list[Message] = []
     h = state.frames[-1].header
-    n = len(state.frames)
     # live events from the recent frames only (times stay on the trial's clock), so the
     # cost per frame does not grow with the trial
     recent = state.frames[-int(state.params["live_window_s"] * 30) :]

@@ -71,7 +71,7 @@ clean stage from the calibration record, i.e. the session's camera.json), or the
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -571,13 +571,7 @@ def locate_depths(
         return out
     if not p["top_half"]:
         idx = np.flatnonzero(ok)
-        margin = np.full(idx.size, p["D0"])
-        z, res = _ragged(depth, centroid[idx], region_radius[idx], margin, p)
-        few = res < 3  # R1: widen the margin once by D0
-        if few.any():
-            z2, _ = _ragged(depth, centroid[idx[few]], region_radius[idx[few]], margin[few] * 2, p)
-            z[few] = z2
-        out[idx] = z
+        out[idx] = _widened(_ragged, depth, centroid[idx], region_radius[idx], p)
         return out
     # top_half: padded windows (its own pixel subset per blob).
     # Windows are padded to the largest of a batch, so blobs go in batches of similar size:
@@ -587,14 +581,25 @@ def locate_depths(
     size_class = np.where(ok, np.ceil(np.log2(np.maximum(np.nan_to_num(half) / 8.0, 1.0))), -1)
     for cls in np.unique(size_class[ok]):
         idx = np.flatnonzero(ok & (size_class == cls))
-        margin = np.full(idx.size, p["D0"])
-        z, res = _batch(depth, centroid[idx], region_radius[idx], margin, p)
-        few = res < 3  # R1: widen the margin once by D0
-        if few.any():
-            z2, _ = _batch(depth, centroid[idx[few]], region_radius[idx[few]], margin[few] * 2, p)
-            z[few] = z2
-        out[idx] = z
+        out[idx] = _widened(_batch, depth, centroid[idx], region_radius[idx], p)
     return out
+
+
+def _widened(
+    locate_blobs: Callable[..., tuple[np.ndarray, np.ndarray]],
+    depth: np.ndarray,
+    centroid: np.ndarray,
+    region_radius: np.ndarray,
+    p: Mapping[str, Any],
+) -> np.ndarray:
+    """(M, 3) ``locate_blobs`` with margin D0, again with 2 D0 where fewer than 3 ring
+    pixels were found (R1: widen the margin once by D0)."""
+    margin = np.full(len(centroid), p["D0"])
+    z, res = locate_blobs(depth, centroid, region_radius, margin, p)
+    few = res < 3
+    if few.any():
+        z[few], _ = locate_blobs(depth, centroid[few], region_radius[few], margin[few] * 2, p)
+    return z
 
 
 def _ragged(

@@ -127,7 +127,7 @@ def steps(frames, cal, **params) -> dict[float, float]:
     state = gs.init(gs.PARAMS.resolve(params))
     outs = []
     for m in frames:
-        state, o = gs.step(state, {"labelled": m, "calibration": cal})
+        state, o = gs.SPEC.run(state, {"labelled": m, "calibration": cal})
         outs += o
     state, o = gs.finish(state)
     doc = [m.results for m in outs + o if m.STREAM == "summary"][-1]

@@ -162,7 +162,7 @@ def outputs(frames, cal, fresh: bool, **params):
     for m in frames:
         if fresh:
             state = dataclasses.replace(state, memo=(), series=None)
-        state, o = gs.step(state, {"labelled": m, "calibration": cal})
+        state, o = gs.SPEC.run(state, {"labelled": m, "calibration": cal})
         out.extend(o)
     return out + gs.finish(state)[1]
 

@@ -30,7 +30,7 @@ def run_stage(frames, cal, **params):
     state = gs.init(gs.PARAMS.resolve(params))
     outs = []
     for m in frames:
-        state, o = gs.step(state, {"labelled": m, "calibration": cal})
+        state, o = gs.SPEC.run(state, {"labelled": m, "calibration": cal})
         outs.extend(o)
     state, o = gs.finish(state)
     return outs + o
@@ -107,10 +107,10 @@ def test_a_new_trial_closes_the_open_one(session):
              for m in frames[:90]]  # fmt: skip
     state = gs.init(gs.PARAMS.resolve({}))
     for m in first:
-        state, _ = gs.step(state, {"labelled": m, "calibration": cal})
+        state, _ = gs.SPEC.run(state, {"labelled": m, "calibration": cal})
     hdr = dataclasses.replace(frames[0].header, trial="walk-02")
     other = dataclasses.replace(frames[0], header=hdr)
-    state, outs = gs.step(state, {"labelled": other, "calibration": cal})
+    state, outs = gs.SPEC.run(state, {"labelled": other, "calibration": cal})
     closed = [o for o in outs if o.STREAM == "summary" and o.results["scope"] == "trial"]
     assert len(closed) == 1 and closed[0].header.trial == frames[0].header.trial
     assert len(state.frames) == 1 and state.frames[0].header.trial == "walk-02"
