@@ -24,6 +24,19 @@ def frame(i: int, camera: str = "cam-1", trial: str = "walk-01") -> bytes:
     return RawFrame(header=RawFrame.make_header(camera, trial, i, 1000 + i), ir=z, depth=z).encode()
 
 
+def dedup_server() -> tuple[FakeBus, list[int], Deduper, object]:
+    """A server bus that records the raw frame indices it receives, duplicates dropped,
+    with its router's liveliness token up."""
+    server = FakeBus()
+    received: list[int] = []
+    d = Deduper()
+    server.subscribe(
+        f"gaitflow/{SITE}/*/raw",
+        dedupe(lambda k, p: received.append(decode(RawFrame, p).header.frame), d),
+    )
+    return server, received, d, server.liveliness_token(router_token_key(SITE))
+
+
 def test_ring_reads_back_in_order_across_segments(tmp_path: Path) -> None:
     ring = Ring(tmp_path, segment_messages=4)
     payloads = [frame(i) for i in range(10)]
@@ -92,14 +105,7 @@ def _wait(cond, timeout: float = 5.0) -> bool:
 
 
 def test_uplink_backfills_after_silent_link_loss(tmp_path: Path) -> None:
-    server = FakeBus()
-    received: list[int] = []
-    d = Deduper()
-    server.subscribe(
-        f"gaitflow/{SITE}/*/raw",
-        dedupe(lambda k, p: received.append(decode(RawFrame, p).header.frame), d),
-    )
-    token = server.liveliness_token(router_token_key(SITE))
+    server, received, d, token = dedup_server()
     attempts = {"n": 0}
     link = FlakyLink(server)
 
@@ -214,14 +220,7 @@ def test_ring_survives_a_restart_and_a_crash(tmp_path: Path) -> None:
 
 
 def test_uplink_restart_forwards_the_backlog_of_the_previous_run(tmp_path: Path) -> None:
-    server = FakeBus()
-    received: list[int] = []
-    d = Deduper()
-    server.subscribe(
-        f"gaitflow/{SITE}/*/raw",
-        dedupe(lambda k, p: received.append(decode(RawFrame, p).header.frame), d),
-    )
-    token = server.liveliness_token(router_token_key(SITE))
+    server, received, _d, token = dedup_server()
     local = FakeBus()
 
     def uplink() -> Uplink:
