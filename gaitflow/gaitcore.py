@@ -1159,10 +1159,19 @@ def spatiotemporal(
             if not _finite(c.heel_strike):
                 continue
             rec: dict[str, Any] = {"side": side, "heel_strike_s": round(c.heel_strike, 4)}
+            # the trailing foot's strike must fall after this foot's previous strike: with the
+            # contralateral strike between them missed, the one before it would make a step
+            # of a step plus a stride
+            own_prev = max(
+                (m.heel_strike for m in mine[:i] if _finite(m.heel_strike)), default=-np.inf
+            )
             prior = [
                 o
                 for o in theirs
-                if o.start < c.heel_strike and _finite(o.heel_pos) and o.stop >= c.start - 0.5
+                if o.start < c.heel_strike
+                and _finite(o.heel_pos)
+                and o.stop >= c.start - 0.5
+                and (o.heel_strike if _finite(o.heel_strike) else o.start) > own_prev
             ]
             if prior:
                 here = pos(side, c.heel_strike, c.heel_pos)

@@ -45,6 +45,8 @@ class StageSpec:
     step: Callable[[Any, Inputs], StepResult]
     finish: Callable[[Any], StepResult] | None = None
     after: Callable[[Any], StepResult] | None = None
+    # run once by the bus runtime before the stage reports ready (e.g. load compiled kernels)
+    warmup: Callable[[dict[str, Any]], None] | None = None
     stateful: bool = False
     doc: str = ""
 

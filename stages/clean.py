@@ -327,11 +327,19 @@ def step(state: CleanState, inputs: Inputs) -> tuple[CleanState, list]:
     return new, [out]
 
 
+def warmup(params: dict[str, Any]) -> None:
+    """Load the compiled kernels before the stage reports ready (``stages/warmup.py``)."""
+    from gaitflow.stages.warmup import run_chain
+
+    run_chain("clean", params)
+
+
 SPEC = StageSpec(
     name="clean",
     params=PARAMS,
     init=init,
     step=step,
     stateful=True,
+    warmup=warmup,
     doc=__doc__ or "",
 )

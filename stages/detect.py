@@ -44,6 +44,17 @@ Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and
   the ``max_region_radius`` test runs on the kept components only. Results are identical
   to the straightforward version (checked on every third frame of two simulated walks at
   several thresholds, and by the unit tests against full-frame labelling).
+- **Compiled kernels (``jit``, on by default).** What was left after that was numpy's
+  per-call overhead on small arrays, so the block maxima, the mosaic (box merging, shelf
+  packing, the flat copies), the labelling and Alg. 2's statistics run as numba kernels
+  (``stages/alg_kernels.py``): a few loops over the pixels, summing in the order
+  ``np.bincount`` does, so blobs, thresholds and iterations are bit-identical to the numpy
+  path above, which ``jit`` = false keeps as the reference (``tests/test_mocap_jit.py``).
+  The kernel's union-find labelling numbers components as OpenCV's block-based labelling
+  does (by their first 2x2 block; 4-way: by their first pixel), so blob order is kept
+  too; it replaced OpenCV in the Alg. 1 loop because OpenCV's call, with its mask and
+  statistics, cost about three times as much on these small mosaics. Kernels compile on
+  first use, not at import, and are cached on disk.
 - **Touching markers (optional, ``split_cores``, off by default).** Heel and ankle, the
   two PSI or ASI seen side-on, crossing feet: markers whose images touch form one
   component and one centroid between them. :func:`split_cores` splits a blob that holds
@@ -185,6 +196,14 @@ PARAMS = ParamSet(
         ),
         Param("block", int, 8, "px", "block size of the region-of-interest search", low=2),
         Param(
+            "jit",
+            bool,
+            True,
+            "-",
+            "compiled (numba) kernels for the region of interest, labelling and Alg. 2 "
+            "statistics; identical outputs, false = the numpy reference",
+        ),
+        Param(
             "split_merged",
             bool,
             False,
@@ -261,8 +280,17 @@ class Roi:
         return c + self.du[t], r + self.dv[t]
 
 
-def block_max(ir: np.ndarray, block: int) -> np.ndarray:
-    """Maximum over each ``block`` x ``block`` tile. (H, W) -> (ceil(H/b), ceil(W/b))."""
+def block_max(ir: np.ndarray, block: int, jit: bool = True) -> np.ndarray:
+    """Maximum over each ``block`` x ``block`` tile. (H, W) -> (ceil(H/b), ceil(W/b)).
+
+    ``jit`` uses the compiled kernel for unsigned images (the same values: padding with
+    zeros never changes their maxima); otherwise numpy.
+    """
+    if jit and ir.dtype.kind == "u" and ir.ndim == 2:
+        from gaitflow.stages import alg_kernels
+
+        # Contiguous input: one compiled specialisation serves every caller.
+        return alg_kernels.block_max(np.ascontiguousarray(ir), int(block))
     h, w = ir.shape
     hb, wb = -(-h // block), -(-w // block)
     if hb * block != h or wb * block != w:
@@ -305,6 +333,7 @@ def compact_roi(
     block: int = 8,
     bmax: np.ndarray | None = None,
     mosaic_width: int = 128,
+    jit: bool = True,
 ) -> Roi:
     """Gather the groups of ``block`` x ``block`` tiles holding pixels above ``level``.
 
@@ -319,6 +348,8 @@ def compact_roi(
     block : tile size in px.
     bmax : the frame's :func:`block_max`, if already computed.
     mosaic_width : shelf width of the mosaic in px (wider crops get their own shelf).
+    jit : compiled :func:`block_max`, tile labelling and mosaic (``alg_kernels.roi_mosaic``;
+        identical result) for uint16 frames.
 
     Returns
     -------
@@ -327,7 +358,18 @@ def compact_roi(
         ``ir > e``: every such component lies inside one tile group, every group inside
         exactly one (merged) box, and boxes are separated by zeros in the mosaic.
     """
-    act = (block_max(ir, block) if bmax is None else bmax) > level
+    bm = block_max(ir, block, jit) if bmax is None else bmax
+    if jit and ir.dtype == np.uint16:
+        from gaitflow.stages import alg_kernels
+
+        img, tile, du, dv, flat_ir, fu, fv = alg_kernels.roi_mosaic(
+            np.ascontiguousarray(ir), np.ascontiguousarray(bm), float(level), int(block),
+            int(mosaic_width),
+        )  # fmt: skip
+        if du.size == 0:
+            return _empty_roi(ir.dtype, level)
+        return Roi(img, tile, du, dv, float(level), flat_ir, fu, fv)
+    act = bm > level
     H, W = ir.shape
     ng, _, stats, _ = cv2.connectedComponentsWithStats(act.view(np.uint8), connectivity=8)
     if ng <= 1:
@@ -401,6 +443,7 @@ def components(
     connectivity: int = 8,
     max_region_radius: float = np.inf,
     extent: bool = False,
+    jit: bool = True,
 ) -> Components:
     """Alg. 2: connected components of ``roi.image > e`` with weighted centroid and radii.
 
@@ -412,6 +455,9 @@ def components(
     connectivity : 4 or 8.
     max_region_radius : components with ``r_r`` above it are rejected (counted).
     extent : also return each component's bounding box (``box``).
+    jit : labelling and statistics by the compiled kernel ``alg_kernels.components_at``
+        (a few loops over the pixels instead of OpenCV and about 25 numpy calls; identical
+        labels and figures); false = the numpy reference below.
 
     Returns
     -------
@@ -422,6 +468,9 @@ def components(
     img = roi.image
     if img.size == 0:
         return _no_components(e)
+    if jit:
+        _check_connectivity(connectivity)
+        return _components_jit(roi, e, connectivity, min_area, max_region_radius, extent)
     mask = (img > e).view(np.uint8)
     nlab, labels, stats, _ = cv2.connectedComponentsWithStats(
         mask, connectivity=connectivity, ltype=cv2.CV_32S
@@ -481,6 +530,57 @@ def components(
     )
 
 
+def _check_connectivity(connectivity: int) -> None:
+    """The kernels label 4- or 8-connected components only (as OpenCV)."""
+    if connectivity not in (4, 8):
+        raise StageError("detect", f"connectivity {connectivity!r} is not 4 or 8")
+
+
+def _components_jit(
+    roi: Roi,
+    e: float,
+    connectivity: int,
+    min_area: int,
+    max_region_radius: float,
+    extent: bool,
+) -> Components:
+    """:func:`components` by the compiled kernel (same labels and figures)."""
+    from gaitflow.stages import alg_kernels
+
+    nlab, labels, ids, cen, rm, rr, k, area, mbox, first, rejected = alg_kernels.components_at(
+        roi.image,
+        roi.flat_ir,
+        roi.flat_u,
+        roi.flat_v,
+        float(e),
+        int(connectivity),
+        int(min_area),
+        float(max_region_radius),
+    )
+    if nlab == 1:  # nothing above e
+        return _no_components(e, labels)
+    box = None
+    if extent:
+        # Mosaic boxes to frame boxes through the crop of each blob's first pixel.
+        t = roi.tile.ravel()[first]
+        du, dv = roi.du[t], roi.dv[t]
+        box = np.stack(
+            [mbox[:, 0] + du, mbox[:, 1] + dv, mbox[:, 2] + du, mbox[:, 3] + dv], axis=1
+        ).astype(np.float64)
+    return Components(
+        threshold=float(e),
+        centroid=cen,
+        marker_radius=rm,
+        region_radius=rr,
+        mean_ir=k,
+        area=area,
+        ids=ids,
+        labels=labels,
+        rejected=int(rejected),
+        box=box,
+    )
+
+
 def _no_components(e: float, labels: np.ndarray | None = None) -> Components:
     z = np.zeros(0)
     lab = np.zeros((0, 0), np.int32) if labels is None else labels
@@ -495,17 +595,27 @@ def count_components(
     min_area: int = 3,
     connectivity: int = 8,
     max_region_radius: float = np.inf,
+    jit: bool = True,
 ) -> int | None:
     """Number of blobs :func:`components` would return at ``e``, from areas alone.
 
     Returns None when a component's bounding box is wide enough that its ``r_r`` might
     exceed ``max_region_radius`` (then only the full statistics can tell). ``r_r`` is at
     most the box diagonal between pixel centres, so below that bound areas decide. Alg. 1
-    step 1 needs only the blob count at each history threshold.
+    step 1 needs only the blob count at each history threshold. ``jit`` labels with the
+    compiled ``alg_kernels.count_at`` (the same count).
     """
     img = roi.image
     if img.size == 0:
         return 0
+    if jit:
+        from gaitflow.stages import alg_kernels
+
+        _check_connectivity(connectivity)
+        c = alg_kernels.count_at(
+            img, float(e), int(connectivity), int(min_area), float(max_region_radius)
+        )
+        return None if c < 0 else c
     mask = (img > e).view(np.uint8)
     _, _, stats, _ = cv2.connectedComponentsWithStats(
         mask, connectivity=connectivity, ltype=cv2.CV_32S
@@ -834,6 +944,7 @@ def adaptive_threshold(
     connectivity: int = 8,
     max_region_radius: float = np.inf,
     e_cap: float = E_MAX,
+    jit: bool = True,
 ) -> tuple[Components, int]:
     """Alg. 1: the frame's threshold e_d, iterated until the blob count settles.
 
@@ -845,6 +956,7 @@ def adaptive_threshold(
     history : the last b entries H, oldest first.
     max_iterations : cap on the loop of steps 3-10.
     e_cap : highest threshold tried (departure, see ``max_threshold``).
+    jit : compiled statistics in :func:`components` (identical result).
 
     Returns
     -------
@@ -856,7 +968,7 @@ def adaptive_threshold(
     def at(e: float) -> Components:
         e = float(min(max(e, roi.level), e_cap))
         if e not in cache:
-            cache[e] = components(roi, e, min_area, connectivity, max_region_radius)
+            cache[e] = components(roi, e, min_area, connectivity, max_region_radius, jit=jit)
         return cache[e]
 
     counts: dict[float, int] = {}
@@ -865,7 +977,7 @@ def adaptive_threshold(
         # Step 1 compares blob counts only: areas suffice unless a blob may be too wide.
         e = float(min(max(e, roi.level), e_cap))
         if e not in counts:
-            c = count_components(roi, e, min_area, connectivity, max_region_radius)
+            c = count_components(roi, e, min_area, connectivity, max_region_radius, jit)
             counts[e] = at(e).count if c is None else c
         return counts[e]
 
@@ -995,7 +1107,8 @@ def detect_frame(
     params : resolved :data:`PARAMS`.
     """
     p = params
-    bm = block_max(ir, p["block"])
+    jit = p["jit"]
+    bm = block_max(ir, p["block"], jit)
     if p["method"] == "static":
         e_static = p["static_threshold"] or w
         floor = e_static
@@ -1006,9 +1119,11 @@ def detect_frame(
         bg = float(np.median(bm)) if bm.size else 0.0
         e_low = bg + p["refine_fraction"] * max(floor - bg, 0.0)
         level = min(e_low, floor)
-    roi = compact_roi(ir, level, p["block"], bm)
+    roi = compact_roi(ir, level, p["block"], bm, jit=jit)
     if p["method"] == "static":
-        comps = components(roi, e_static, p["min_area"], p["connectivity"], p["max_region_radius"])
+        comps = components(
+            roi, e_static, p["min_area"], p["connectivity"], p["max_region_radius"], jit=jit
+        )
         iterations = 0
     else:
         comps, iterations = adaptive_threshold(
@@ -1022,6 +1137,7 @@ def detect_frame(
             p["connectivity"],
             p["max_region_radius"],
             max(p["max_threshold"], roi.level),
+            jit,
         )
     # Alg. 1's history entry is of the blobs it settled on, before any split.
     k1, u1 = _largest(comps)
@@ -1057,11 +1173,13 @@ def _anchor(ir: np.ndarray, cal: CalibrationRecord | None, p: Mapping[str, Any])
     """(w, r_b) from the calibration record, the declared defaults, or the image."""
     w = cal.w if cal is not None and np.isfinite(cal.w) and cal.w > 0 else p["default_w"]
     if not w:
-        w = initial_w(block_max(ir, p["block"]))
+        w = initial_w(block_max(ir, p["block"], p["jit"]))
     r_b = cal.r_b if cal is not None and np.isfinite(cal.r_b) and cal.r_b > 0 else p["default_r_b"]
     if not r_b:
-        roi = compact_roi(ir, w, p["block"])
-        c = components(roi, w, p["min_area"], p["connectivity"], p["max_region_radius"])
+        roi = compact_roi(ir, w, p["block"], jit=p["jit"])
+        c = components(
+            roi, w, p["min_area"], p["connectivity"], p["max_region_radius"], jit=p["jit"]
+        )
         r_b = float(np.median(c.region_radius)) if c.count else 0.0
     return float(min(w, E_MAX)), float(r_b)
 
@@ -1109,11 +1227,19 @@ def step(state: DetectState, inputs: Inputs) -> tuple[DetectState, list]:
     return DetectState(p, cams, state.frames + 1), [out]
 
 
+def warmup(params: dict[str, Any]) -> None:
+    """Load the compiled kernels before the stage reports ready (``stages/warmup.py``)."""
+    from gaitflow.stages.warmup import run_chain
+
+    run_chain("detect", params)
+
+
 SPEC = StageSpec(
     name="detect",
     params=PARAMS,
     init=init,
     step=step,
     stateful=True,
+    warmup=warmup,
     doc=__doc__ or "",
 )

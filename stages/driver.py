@@ -68,6 +68,14 @@ class StageDriver:
             return out
         h = msg.header
         key = (h.camera, h.trial, h.frame)
+        if key not in self._join and len(self._join) >= self.max_join:
+            oldest = next(iter(self._join))
+            if oldest[:2] == key[:2] and key[2] < oldest[2]:
+                # behind a full window whose partners were already dropped: evicting the
+                # oldest slot for it would make every later arrival of this input miss its
+                # partner in turn, and the join would never complete a frame again
+                self.dropped += 1
+                return out
         slot = self._join.setdefault(key, {})
         slot[stream] = msg
         if len(slot) < len(self.node.inputs):

@@ -91,7 +91,7 @@ PARAMS = ParamSet(
         Param(
             "depth_smooth_s",
             float,
-            0.0,
+            0.3,
             "s",
             "smooth each marker's depth along its ray over this window (0 = off)",
             0.0,

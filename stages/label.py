@@ -8,7 +8,8 @@ own Alg. 3 cluster mode (``gaitflow.markers.cluster_mode``).
 Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 
 1. every blob is mapped to the floor frame under each cluster mode: a along the walking
-   line (toward +u), e horizontal away from the camera, h height above the floor (mm);
+   line (toward +u), e horizontal away from the camera, h height above the floor (mm); a
+   blob over ``HUGE_BLOB`` times the frame's median radius is no marker (``_huge``);
 2. the shoulder (SHO) is predicted by a constant-velocity Kalman filter (filterpy's equations,
    position + velocity in 3D) and taken as the shoulder-height blob nearest the prediction
    (or a clearly nearer-to-camera one at the same place: the near shoulder); without one
@@ -25,7 +26,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 4. upper body (steps 5-6): every assignment of the pelvis-band blobs to near PSI, HIP, ASI
    and far ASI, PSI (absorbers, never published) is scored (vectorised) by the tracks or
    the model's standing offsets from the shoulder, sagittal rigid distances, and the hard
-   order PSI < HIP < ASI along the walking direction, HIP below both, far ASI deeper;
+   order PSI < HIP < ASI along the walking direction, HIP below every ASI and PSI by
+   ``HIP_DROP`` of its standing drop, far ASI deeper; blobs that stood still while the
+   shoulder walked are no candidates (``_still``);
 5. lower body (steps 7-10): every assignment of the low blobs to the near foot (TIB, ANK,
    HEE, TOE) is scored by the foot's sagittal lengths (ANK-HEE, ANK-TOE, HEE-TOE: the
    model's, refined online from walking frames, see ``_learn_foot``), one depth for the
@@ -35,11 +38,14 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    ones are completed with the far heel, toe and tibia (the far tibia only absorbs its
    blob; rigid foot, deeper than the near foot; a lone far blob only on last frame's
    track); ambiguity is judged on the joint hypotheses; a lone near foot marker needs a
-   fresh track. Then the limb (KNE: thigh and shank lengths to HIP and ANK; THI and TIB
-   on their segments, ``_on_segment``; near knee and thigh at the near leg's depth, far
-   knee and thigh, deeper, absorb their blobs; the pelvis's hip label is a slot too, and
-   dropped when the leg below contradicts it; the blob on the knee's fresh track is kept
-   from the foot search). Segment lengths more than 25 % off the
+   fresh track. Foot tracks widen with the time unseen (``FOOT_SPEED_SIG``: swing onset);
+   an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims;
+   without a fresh knee track, a blob at the thigh's length from the hip is left to the
+   limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
+   ANK; THI and TIB on their segments, ``_on_segment``; near knee and thigh at the near
+   leg's depth, far knee and thigh, deeper, absorb their blobs; the pelvis's hip label is
+   a slot too, and dropped when the leg below contradicts it; the blob on the knee's fresh
+   track is kept from the foot search). Segment lengths more than 25 % off the
    stature-scaled template fall back to it (a static labelling error);
 6. a label is left NaN rather than guessed when another blob fits it almost as well
    (``ambiguity``) or it breaks a track gate or a rigid distance: an occluded marker gives a
@@ -79,6 +85,15 @@ PARAMS = ParamSet(
     NAME,
     (
         Param("fps", float, 30.0, "Hz", "nominal frame rate (frame index -> time)", 1.0, 1000.0),
+        Param(
+            "leg_layer",
+            str,
+            "track",
+            "",
+            "knee, tibia, ankle: own cluster mode, or the bottom mode's layer where it "
+            "continues the marker's last depth (departure)",
+            choices=("own", "track"),
+        ),
         Param(
             "max_missed",
             int,
@@ -153,6 +168,19 @@ PLAUSIBLE = 0.25
 # The pelvis search's slots (_pelvis).
 PELVIS = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "ASI"), ("far", "PSI"))
 MISS_COST = 9.0  # a missing label costs as much as a 3-sigma fit
+# A blob whose radius exceeds this many times the frame's median is no marker (_huge).
+HUGE_BLOB = 3.0
+HIP_DROP = 0.25  # share of the standing ASI/PSI-to-HIP drop the hip keeps below them
+# Foot tracks (ANK, HEE, TOE): the forward speed's uncertainty, mm/s; the forward sigma grows
+# by it times the time since last seen (see _predictions).
+FOOT_SITES = [SITES.index(s) for s in ("ANK", "HEE", "TOE")]
+FOOT_SPEED_SIG = 2400.0
+# A far heel or toe without a fresh track pays this for a blob that the same site's fresh
+# near track predicts within CLAIM_SIG2 (squared sigma; see _lower).
+CLAIM_SIG2 = 4.0
+# Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
+# the foot search leaves to the limb search when the knee has no fresh track (see _lower).
+KNEE_RING = 0.5
 
 
 # --- the subject geometry label uses --------------------------------------------------
@@ -305,12 +333,16 @@ class LabelState:
     vel: np.ndarray | None = None
     seen: np.ndarray | None = None
     frames: int = 0
+    # (N, 2) last frame's blobs (a, h), normal mode, mm: which blobs stood still (_still).
+    prev_ah: np.ndarray | None = None
     labelled: int = 0
     foot: np.ndarray | None = None  # (3,) learned ANK-HEE, ANK-TOE, HEE-TOE, mm
     foot_n: int = 0
     # (calibration, model, FloorFrame, Geometry): the side inputs the floor frame and the
     # geometry were derived from, and those (derived once per side input, not per frame).
     sides: tuple[Any, Any, FloorFrame, Geometry] | None = None
+    # ((20,) camera Z mm, (20,) frame) of each marker's last published position
+    leg_depth: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def init(params: dict[str, Any]) -> LabelState:
@@ -387,6 +419,7 @@ class _Frame:
     ambiguity: float
     age: np.ndarray  # (20,) frames since each marker was last labelled
     publish_asis_psis: bool = True
+    still: np.ndarray | None = None  # (N,) bool, blob stood still while the subject walked
 
     def pos(self, i: int) -> np.ndarray:
         """(N, 3) blob positions under marker ``i``'s cluster mode."""
@@ -403,6 +436,11 @@ MODE_OF = np.array(
 
 # Each marker's own cluster mode (the output's).
 OWN_MODE = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
+
+
+def _fresh(fr: _Frame, idx: int) -> bool:
+    """Marker ``idx`` has a track labelled within the last two frames."""
+    return bool(fr.tracked[idx] and fr.age[idx] <= 2)
 
 
 def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
@@ -543,7 +581,12 @@ class _Hyp:
 
 
 def label_frame(
-    st: LabelState, pos: np.ndarray, frame_idx: int, ff: FloorFrame, geo: Geometry
+    st: LabelState,
+    pos: np.ndarray,
+    frame_idx: int,
+    ff: FloorFrame,
+    geo: Geometry,
+    radius: np.ndarray | None = None,
 ) -> tuple[LabelState, np.ndarray]:
     """Alg. 5 on one frame.
 
@@ -555,6 +598,8 @@ def label_frame(
     frame_idx : the frame index (gaps = dropped frames).
     ff : the floor frame of the calibration.
     geo : the subject geometry.
+    radius : (N,) locate's blob radius r_m, px (optional): blobs far larger than the frame's
+        median (``_huge``) are no candidates for any label.
 
     Returns
     -------
@@ -570,10 +615,12 @@ def label_frame(
     pos = np.where(np.isfinite(pos), pos, pos[:, :1, :])
     fm = ff.to_floor(pos) if len(pos) else np.zeros((0, 3, 3))
     floor = fm[:, 0]
-    ok = np.isfinite(floor).all(axis=1)
+    ok = np.isfinite(floor).all(axis=1) & ~_huge(radius, len(floor))
     assign = np.full(20, -1)
     # (st.frame and st.frames are updated on the way out.)
     top = fm[:, CLUSTER_MODES.index("top")]
+    ah = floor[:, [0, 2]]
+    prev_ah = st.prev_ah if dt_frames == 1 else None
 
     # Steps 1-3: the shoulder (top mode).
     band = ok & (top[:, 2] > 0.85 * H) & (top[:, 2] < 1.15 * H)
@@ -625,7 +672,7 @@ def label_frame(
     if st.sho_x is None:
         sho_blob = _acquire_shoulder(top, ok, band, H)
         if sho_blob < 0:
-            return replace(st, frame=frame_idx, frames=st.frames + 1), assign
+            return replace(st, frame=frame_idx, frames=st.frames + 1, prev_ah=ah), assign
         x = np.concatenate([top[sho_blob], np.zeros(3)])
         P = np.diag([20.0**2] * 3 + [1500.0**2] * 3)
         st = _reset_tracks(replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0))
@@ -684,6 +731,7 @@ def label_frame(
             p["ambiguity"],
             age,
             p["publish_asis_psis"],
+            _still(ah, prev_ah, abs(va) * dt),
         )
         _pelvis(fr, geo, sho, H, p["gate"])
         _lower(fr, geo, sho, H, p["gate"])
@@ -709,6 +757,7 @@ def label_frame(
         vel=vel,
         seen=seen,
         labelled=st.labelled + int((assign >= 0).sum()),
+        prev_ah=ah,
     )
     if st.direction:
         st = _learn_foot(st, fm, assign, geo, "R" if st.direction > 0 else "L")
@@ -751,6 +800,53 @@ def _learn_foot(
         return st
     rate = max(FOOT_RATE, 1.0 / (FOOT_PRIOR + st.foot_n + 1))
     return replace(st, foot=cur + rate * (obs - cur), foot_n=st.foot_n + 1)
+
+
+def _huge(radius: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) blobs far larger than a marker: radius over ``HUGE_BLOB`` times the frame's median.
+
+    ``radius`` (n,) is locate's r_m per blob (px; None or another length: nothing is huge).
+    Markers of one session share a size and a distance to the camera, so the median blob is
+    a marker; two markers merged into one blob measure 1.6-2.4 times it, a hand or a
+    reflective patch more (the bundled walks' stray hand: 3-4.7). Needs 5 blobs for a median.
+    """
+    out = np.zeros(n, bool)
+    if radius is None or len(radius) != n or n < 5:
+        return out
+    r = np.asarray(radius, dtype=np.float64)
+    fin = np.isfinite(r)
+    if not fin.any():
+        return out
+    med = float(np.median(r[fin]))
+    if med > 0:
+        out[fin] = r[fin] > HUGE_BLOB * med
+    return out
+
+
+STILL_MOVE_MM = 20.0  # the shoulder's move per frame below which nothing is judged still
+STILL_FRAC = 0.25  # a blob moved less than this share of the shoulder's move stood still
+
+
+def _still(ah: np.ndarray, prev: np.ndarray | None, moved: float) -> np.ndarray | None:
+    """Blobs that stood still since the last frame while the shoulder moved ``moved`` mm.
+
+    Parameters
+    ----------
+    ah : (N, 2) this frame's blobs (along the line, height), mm (NaN = no position).
+    prev : (P, 2) the last frame's, or None (no last frame, or frames were dropped).
+    moved : the shoulder's move along the line since the last frame, mm.
+
+    Returns
+    -------
+    (N,) bool: a blob within ``STILL_FRAC * moved`` of a blob of the last frame (in the
+    sagittal plane); None when the subject hardly moved (nothing can be told apart).
+    The pelvis moves with the trunk at walking speed: a pelvis-band blob that stays put
+    is a stray (a reflector, a hand held still), whatever its fit to the model.
+    """
+    if prev is None or len(prev) == 0 or len(ah) == 0 or moved < STILL_MOVE_MM:
+        return None
+    d = np.hypot(ah[:, None, 0] - prev[None, :, 0], ah[:, None, 1] - prev[None, :, 1])
+    return np.nan_to_num(d, nan=np.inf).min(axis=1) < STILL_FRAC * moved
 
 
 def _nearest_shoulder(top: np.ndarray, band: np.ndarray, x: np.ndarray, H: float) -> int:
@@ -823,7 +919,15 @@ def _predictions(
         pred[tracked] = np.stack([direction * t[:, 0], t[:, 1], t[:, 2]], axis=1)
         s = 30.0 + 20.0 * a
         se = np.where(cls[tracked] == 0, 0.25 * H, s + 20.0)
-        sig[tracked] = np.stack([s + 0.3 * np.abs(st.vel[tracked][:, 0]), se, s], axis=1)
+        # The feet accelerate hard at toe-off and heel strike: a swing foot goes from
+        # standing to 3-4 m/s within two frames, so a foot track's last velocity says little
+        # about the next frames. Its forward sigma also grows with the time unseen (at 30 fps
+        # 80 mm per frame). Otherwise the far toe's track, still at the stance speed, took the
+        # far heel's blob at toe-off, the heel's the near toe's, and the shift held.
+        foot = np.isin(site[tracked], FOOT_SITES)
+        sf = s + 0.3 * np.abs(st.vel[tracked][:, 0])
+        sf = sf + np.where(foot, FOOT_SPEED_SIG * a / p["fps"], 0.0)
+        sig[tracked] = np.stack([sf, se, s], axis=1)
     return pred, sig, tracked
 
 
@@ -846,6 +950,8 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
         & (np.abs(qb[:, 0] - sho[0]) < 0.35 * H)
         & (np.abs(qb[:, 1] - sho[1]) < 0.45 * H)
     )
+    if fr.still is not None:
+        cand = cand[~fr.still[cand]]
     K = cand.size
     if K == 0:
         return
@@ -869,8 +975,17 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     hy = _Hyp(fr, idx, cand)
     for a, b in ((0, 1), (1, 2), (0, 2)):
         hy.forbid((a, b), lambda pa, pb: pa[:, 0] < pb[:, 0])
-    for a in (0, 2):
-        hy.forbid((a, 1), lambda pa, ph: ph[:, 2] < pa[:, 2])
+    # The hip (greater trochanter) lies well below the iliac spines of both sides: at least
+    # HIP_DROP of its standing drop below each ASI and PSI, near or far (pelvic obliquity and
+    # tilt while walking change the drop by a few cm). Without the far ones, a hidden hip's
+    # label took the near ASI whenever the near ASI slot stayed empty.
+    drop = HIP_DROP * max(
+        float(np.mean([geo.rel_sho("near", s)[2] for s in ("ASI", "PSI")]))
+        - geo.rel_sho("near", "HIP")[2],
+        0.0,
+    )
+    for a in (0, 2, 3, 4):
+        hy.forbid((a, 1), lambda pa, ph: ph[:, 2] < pa[:, 2] - drop)
     # Near and far ASI both seen: the near one is the nearer (a relative test survives the
     # silhouette's depth bias better than the absolute depth does).
     hy.forbid((2, 3), lambda pn, pf: pn[:, 1] < pf[:, 1])
@@ -915,6 +1030,15 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # knee sits as low as a tibia wand (the foot search comes first).
         u = (((fr.pos(kne_i) - fr.pred[kne_i]) / fr.sig[kne_i]) ** 2).sum(axis=1)
         low &= ~(u < 4.0)
+    elif hip is not None:
+        # Without a fresh knee track (a pass's first frames), a blob at the thigh's length
+        # from the labelled hip (within half a sigma of _rigid) is kept for the limb search
+        # too: the crouched subject's knee, as low as a tibia wand, took the tibia label
+        # when the ankle and heel were hidden, the tibia wand the ankle's, and the tracks
+        # held the shift for 8 frames.
+        thigh = geo.d("HIP", "KNE")
+        d_hip = np.hypot(q[:, 0] - hip[0], q[:, 2] - hip[2])
+        low &= ~(np.abs(d_hip - thigh) < KNEE_RING * (10.0 + 0.1 * thigh))
     cand = np.flatnonzero(low)
     if cand.size > 9:
         # The foot and shank markers are the lowest on the body.
@@ -967,6 +1091,15 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # blob: otherwise it passes for a hidden near tibia or heel.
         far_idx = [MARKER_INDEX[f"{far}_{s}"] for s in ("HEE", "TOE", "TIB")]
         h2 = _Hyp(fr, far_idx, cand)
+        # Track claims: a far heel (toe) without a fresh track of its own pays a miss for a
+        # blob that the near heel's (toe's) fresh track predicts within 2 sigma. The model's
+        # loose standing offsets let an untracked far heel take the near heel's blob (and
+        # then the far toe's track the far heel's) when the feet pass each other, where depth
+        # cannot tell near from far.
+        for k, i in enumerate(far_idx[:2]):
+            ni = foot_idx[2 + k]
+            if _fresh(fr, ni) and not _fresh(fr, i):
+                h2.U[k, :K] += np.where(hy.U[2 + k, :K] < CLAIM_SIG2, MISS_COST, 0.0)
         h2.forbid((0, 1), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
         for k in (0, 1):
             h2.forbid((2, k), lambda pw, pk: pw[:, 2] > pk[:, 2] + 0.1 * shank)
@@ -1217,19 +1350,58 @@ def _accept(
 # --- the stage core ------------------------------------------------------------------------
 
 
-def _output(mk: Markers3D, assign: np.ndarray, direction: int, near: str) -> LabelledMarkers:
+# Leg markers whose layer is chosen by depth continuity (``leg_layer="track"``, _output).
+LEG = np.array([MARKER_INDEX[f"{side}_{m}"] for side in "LR" for m in ("KNE", "TIB", "ANK")])
+BOTTOM = CLUSTER_MODES.index("bottom")
+# A leg marker's depth (its lateral position in a side view) moves a few mm per frame; a
+# layer this much closer to its last depth than the own mode's wins.
+LAYER_GAIN_MM = 20.0
+LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
+
+
+def _output(
+    mk: Markers3D,
+    assign: np.ndarray,
+    direction: int,
+    near: str,
+    prev: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[LabelledMarkers, tuple[np.ndarray, np.ndarray]]:
+    """The labelled frame, and the (20,) depth and frame of each marker's last position.
+
+    ``prev`` (the previous call's second output, or None) enables the leg layer choice: a
+    knee, tibia or ankle marker whose own-mode layer is the nearest surface in its window
+    takes the bottom mode's layer instead when that one continues its last depth (within
+    ``LAYER_MAX_AGE`` frames) better by ``LAYER_GAIN_MM``: a hand or the other leg passing
+    in front makes the nearest layer tens of mm too near for a few frames (departure).
+    """
     pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
     cen = np.asarray(mk.centroid, dtype=np.float64).reshape(-1, 2)
     position = np.full((20, 3), np.nan)
     pixel = np.full((20, 2), np.nan)
     ii = np.flatnonzero(assign >= 0)
     b = assign[ii]
-    xyz = pos[b, OWN_MODE[ii]]
+    mode = OWN_MODE.copy()
+    frame = mk.header.frame
+    if prev is not None:
+        zp, seen = prev
+        for k in LEG:
+            bk = assign[k]
+            if bk < 0 or not np.isfinite(zp[k]) or frame - seen[k] > LAYER_MAX_AGE:
+                continue
+            zo, zb = pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2]
+            finite = np.isfinite(zo) and np.isfinite(zb)
+            if finite and abs(zb - zp[k]) + LAYER_GAIN_MM < abs(zo - zp[k]):
+                mode[k] = BOTTOM
+    xyz = pos[b, mode[ii]]
     # The label's own mode found no layer: normal mode.
     xyz = np.where(np.isfinite(xyz).all(axis=1)[:, None], xyz, pos[b, 0])
     position[ii] = xyz
     pixel[ii] = cen[b]
-    return LabelledMarkers.follow(
+    zs = np.full(20, np.nan) if prev is None else prev[0].copy()
+    seen = np.full(20, -(10**9)) if prev is None else prev[1].copy()
+    zs[ii] = position[ii, 2]
+    seen[ii] = frame
+    msg = LabelledMarkers.follow(
         mk.header,
         position=position,
         pixel=pixel,
@@ -1237,6 +1409,7 @@ def _output(mk: Markers3D, assign: np.ndarray, direction: int, near: str) -> Lab
         direction=int(direction),
         near_side=near,
     )
+    return msg, (zs, seen)
 
 
 def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, list[Message]]:
@@ -1271,11 +1444,18 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
         st = replace(st, sides=(cal, model, ff, Geometry.from_model(model)))
     _, _, ff, geo = st.sides
     pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
-    st, assign = label_frame(st, pos, mk.header.frame, ff, geo)
+    radius = np.asarray(mk.marker_radius, dtype=np.float64)
+    st, assign = label_frame(st, pos, mk.header.frame, ff, geo, radius)
     near = "" if st.direction == 0 else ("R" if st.direction > 0 else "L")
     if st.sho_x is None:
         near = ""
-    return st, [_output(mk, assign, st.direction if st.sho_x is not None else 0, near)]
+    direction = st.direction if st.sho_x is not None else 0
+    track = p["leg_layer"] == "track"
+    prev = st.leg_depth if track and st.leg_depth is not None else None
+    if track and prev is None:
+        prev = (np.full(20, np.nan), np.full(20, -(10**9)))
+    out, leg_depth = _output(mk, assign, direction, near, prev)
+    return replace(st, leg_depth=leg_depth if track else None), [out]
 
 
 SPEC = StageSpec(

@@ -807,6 +807,11 @@ def serve(
     opt = options or RuntimeOptions()
     spec = _load_spec(node)
     params = spec.params.resolve({**node.params, **dict(params_override or {})})
+    if isinstance(spec, StageSpec) and spec.warmup is not None:
+        # before subscribing: a first-frame stall would let a joined input run ahead
+        t0 = time.perf_counter()
+        spec.warmup(params)
+        log.info("%s: warm-up %.2f s", node.name, time.perf_counter() - t0)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

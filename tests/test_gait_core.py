@@ -239,6 +239,22 @@ def test_spatiotemporal_literal_contacts():
     assert st["speed_m_s"] == pytest.approx(1.0)
 
 
+def test_step_needs_the_contralateral_strike_after_the_previous_own_strike():
+    # R's strike at 1.5 s was missed and its stance seen as one long flat range: L's strike
+    # at 2.0 s must not pair with R's footprint from 0.5 s (a step plus a stride, 1500 mm)
+    c = gc.Contact
+    contacts = {
+        "L": [
+            c("L", 0.0, 0.2, 0.3, 0.0, 0.0, 0.3),
+            c("L", 1.0, 1.2, 1.3, 1000.0, 1.0, 1.3),
+            c("L", 2.0, 2.2, 2.3, 2000.0, 2.0, 2.3),
+        ],
+        "R": [c("R", 0.5, 1.4, 1.6, 500.0, 0.5, 1.6)],
+    }
+    st = gc.spatiotemporal(contacts)
+    assert st["L"]["step_length_mm"] == [500.0]
+
+
 def test_split_passes_forth_and_back():
     t = np.arange(0, 8, 1 / 30)
     prog = np.where(t < 4, 1000 * t, 4000 - 1000 * (t - 4))

@@ -111,12 +111,17 @@ def test_hypothesis_tables_equal_row_by_row_evaluation() -> None:
 PINNED = {
     5: [-1, -1, -1, -1, -1, -1, -1, -1, 10, 5, 11, -1, -1, 2, 8, 0, 14, 13, 4, 3],
     21: [-1, -1, -1, -1, -1, -1, -1, -1, 13, 2, 5, -1, -1, 8, 3, 9, 7, 6, -1, 0],
-    31: [-1, -1, -1, -1, -1, -1, -1, -1, 10, 11, 12, -1, -1, 9, 0, -1, 7, 4, -1, 5],
+    31: [-1, -1, -1, -1, -1, -1, -1, -1, 10, -1, 12, -1, -1, 9, 0, -1, 7, -1, 4, -1],
     59: [-1, -1, -1, -1, -1, -1, -1, -1, 8, 1, 12, -1, -1, 5, 13, 10, 14, 9, 6, 2],
     75: [7, -1, -1, 5, 0, 3, 12, 6, 9, 8, -1, -1, -1, -1, -1, -1, -1, -1, 11, 10],
-    111: [10, -1, -1, -1, 14, 8, 7, 3, 9, 13, -1, -1, -1, -1, -1, -1, -1, -1, 4, 12],
+    111: [10, -1, -1, 6, 14, 8, 7, 3, 9, 13, -1, -1, -1, -1, -1, -1, -1, -1, 4, 12],
 }
-PINNED_COUNTS = [60, 0, 0, 53, 60, 60, 60, 58, 118, 116, 60, 0, 0, 56, 60, 57, 60, 57, 111, 120]
+# Re-pinned after the hip rules of the pelvis search (below the far ASI and PSI too; still
+# blobs out): 7 more hip labels (L_HIP 53 -> 59, R_HIP 56 -> 57, all right by the walk's
+# truth, frame 111); and after the foot-track sigma and the far heel/toe track claims: wrong
+# labels 3 -> 1 of ~1170 (frame 31: R_ANK on the heel's blob is now R_HEE), 8 fewer foot
+# labels.
+PINNED_COUNTS = [60, 0, 0, 59, 60, 60, 60, 58, 115, 115, 60, 0, 0, 57, 60, 57, 60, 55, 113, 116]
 
 
 def test_labelling_pinned_on_a_noisy_walk_with_occlusions(subject: SubjectModel) -> None:  # noqa: F811

@@ -1,0 +1,178 @@
+"""Label stage, legs: foot-track acceleration sigma, far heel/toe track claims, knee ring.
+
+Literal positions from simulated walks where the earlier stage went wrong (rounded, mm, in the
+oriented floor frame the foot search works in: forward along the walking direction, e away
+from the camera, height), on the stature-scaled template subject with the walk's segment
+lengths and the marker tracks of the frames before as state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from gaitflow.stages import label
+
+from gaitflow.markers import MARKER_INDEX, SITES
+
+
+def _geometry(sho_h: float, lengths: dict[tuple[str, str], float]) -> label.Geometry:
+    geo = label.Geometry.from_model(None)
+    dist = geo.dist.copy()
+    for (a, b), d in lengths.items():
+        ia, ib = SITES.index(a), SITES.index(b)
+        dist[ia, ib] = dist[ib, ia] = d
+    scale = sho_h / geo.sho_h
+    return replace(geo, dist=dist, sho_h=sho_h, offsets=geo.offsets * scale)
+
+
+def _lower(
+    blobs: list[list[float]],
+    tracks: dict[str, tuple[list[float], list[float], int]],
+    assigned: dict[str, int],
+    geo: label.Geometry,
+    sho: list[float],
+    near: str,
+    direction: int,
+    frame: int = 20,
+) -> np.ndarray:
+    """Run the lower-body search on one frame; return the (20,) blob per marker.
+
+    blobs : (N, 3) oriented floor positions (the same under every cluster mode).
+    tracks : marker -> (last position, velocity per frame, both un-oriented; frames since).
+    assigned : labels already given (the shoulder, the pelvis search's hip).
+    """
+    st = label.init(label.PARAMS.resolve({}))
+    last, vel, seen = st.last.copy(), st.vel.copy(), st.seen.copy()
+    for name, (p, v, age) in tracks.items():
+        i = MARKER_INDEX[name]
+        last[i], vel[i], seen[i] = p, v, frame - age
+    st = replace(st, last=last, vel=vel, seen=seen)
+    sho_o = np.asarray(sho, float)
+    pred, sig, tracked = label._predictions(st, geo, sho_o, near, direction, frame)
+    q = np.asarray(blobs, float)
+    assign = np.full(20, -1)
+    free = np.ones(len(q), bool)
+    for name, b in assigned.items():
+        assign[MARKER_INDEX[name]] = b
+        free[b] = False
+    fr = label._Frame(
+        np.repeat(q[:, None, :], 3, axis=1),
+        free,
+        assign,
+        pred,
+        sig,
+        near,
+        tracked,
+        4.0,
+        frame - seen,
+        False,
+    )
+    label._lower(fr, geo, sho_o, geo.sho_h, 4.0)
+    return fr.assign
+
+
+def test_swing_toe_stays_within_two_sigma_of_its_stance_track() -> None:
+    # Two frames after toe-off the far toe is 224 mm ahead of where it stood (3.4 m/s), its
+    # track still at the stance speed: it must stay a plausible continuation (under 2 sigma),
+    # not leave the track to the heel's blob, which now stands where the toe stood. Without
+    # the foot sigma it was 3.2 sigma off (sigma 70 mm) and the far foot's labels shifted
+    # by one marker for 11 frames (toe on the heel's blob, heel on the near toe's).
+    geo = label.Geometry.from_model(None)
+    st = label.init(label.PARAMS.resolve({}))
+    last, seen = st.last.copy(), st.seen.copy()
+    toe = MARKER_INDEX["L_TOE"]
+    last[toe], seen[toe] = [989.0, 61.0, 81.0], 40
+    st = replace(st, last=last, seen=seen)
+    pred, sig, tracked = label._predictions(
+        st, geo, np.array([770.0, -291.0, geo.sho_h]), "R", 1, 42
+    )
+    assert tracked[toe]
+    z = (np.array([1213.0, 37.0, 130.0]) - pred[toe]) / sig[toe]
+    assert (z**2).sum() < 4.0
+    # The heel's blob, where the toe stood, still fits better: the foot's geometry and the
+    # far heel's own track decide between them (the search's rigid foot).
+    zh = (np.array([996.0, 24.0, 48.0]) - pred[toe]) / sig[toe]
+    assert (zh**2).sum() < (z**2).sum()
+
+
+def test_far_heel_does_not_take_the_near_heels_tracked_blob() -> None:
+    # Near side L, walking toward -a (oriented forward = -a). The near heel, hidden last
+    # frame, is back where its track says; the far (R) foot swings past at the near foot's
+    # depth, its toe tracked, its heel not. The untracked far heel took the near heel's blob.
+    blobs = [
+        [-447.0, -189.0, 1268.0],  # 0 L_SHO
+        [-537.0, -164.0, 285.0],  # 1 L_TIB
+        [-528.0, -86.0, 120.0],  # 2 R_TOE
+        [-662.0, -57.0, 52.0],  # 3 L_HEE
+        [-577.0, -87.0, 56.0],  # 4 L_ANK
+        [-466.0, -113.0, 46.0],  # 5 L_TOE
+    ]
+    tracks = {
+        "L_TIB": ([541.0, -167.0, 283.0], [-6.0, -3.0, 1.0], 1),
+        "L_ANK": ([580.0, -89.0, 53.0], [1.0, -1.0, 2.0], 1),
+        "L_HEE": ([650.0, -48.0, 43.0], [-6.0, 10.0, 1.0], 2),
+        "L_TOE": ([468.0, -117.0, 47.0], [-1.0, -1.0, -2.0], 1),
+        "R_TOE": ([679.0, 43.0, 105.0], [-105.0, 3.0, -9.0], 2),
+    }
+    geo = _geometry(
+        1235.0,
+        {("ANK", "HEE"): 68.0, ("ANK", "TOE"): 116.0, ("HEE", "TOE"): 183.0, ("KNE", "ANK"): 381},
+    )
+    a = _lower(blobs, tracks, {"L_SHO": 0}, geo, [-448.0, -192.0, 1271.0], "L", -1)
+    assert a[MARKER_INDEX["R_HEE"]] != 3
+
+
+def test_foot_track_sigma_grows_with_time_unseen() -> None:
+    # Same track (position, velocity, age) for a knee and a toe: the toe's forward sigma is
+    # larger by FOOT_SPEED_SIG * age / fps; depth and height sigmas are the same.
+    geo = label.Geometry.from_model(None)
+    st = label.init(label.PARAMS.resolve({}))
+    last, vel, seen = st.last.copy(), st.vel.copy(), st.seen.copy()
+    for name in ("R_KNE", "R_TOE"):
+        i = MARKER_INDEX[name]
+        last[i], vel[i], seen[i] = [500.0, 0.0, 300.0], [20.0, 0.0, 0.0], 8
+    st = replace(st, last=last, vel=vel, seen=seen)
+    _, sig, tracked = label._predictions(st, geo, np.array([500.0, 0.0, geo.sho_h]), "R", 1, 10)
+    k, t = MARKER_INDEX["R_KNE"], MARKER_INDEX["R_TOE"]
+    assert tracked[k] and tracked[t]
+    grow = label.FOOT_SPEED_SIG * 2 / 30.0
+    assert np.isclose(sig[t, 0] - sig[k, 0], grow)
+    assert np.allclose(sig[t, 1:], sig[k, 1:])
+
+
+def test_crouched_knee_is_left_to_the_limb_search() -> None:
+    # A pass's first frame (no tracks), crouched subject, near side R: the ankle and heel
+    # hidden, the knee (448, 269) as low as a tibia wand and at the thigh's length from the
+    # labelled hip. The foot search took the knee for the tibia (and the tibia wand for the
+    # ankle); the knee now stays with the limb search.
+    blobs = [
+        [613.0, 41.0, 161.0],  # 0 L_TIB (far, hidden behind the shank)
+        [198.0, -169.0, 765.0],  # 1 R_PSI
+        [533.0, -240.0, 754.0],  # 2 L_ASI
+        [402.0, -240.0, 743.0],  # 3 R_ASI
+        [436.0, -206.0, 389.0],  # 4 R_THI
+        [139.0, -144.0, 151.0],  # 5 R_TIB
+        [636.0, -10.0, 99.0],  # 6 L_TOE
+        [317.0, -192.0, 1223.0],  # 7 R_SHO
+        [166.0, -145.0, 83.0],  # 8 R_TOE
+        [501.0, -14.0, 29.0],  # 9 L_HEE
+        [448.0, -133.0, 269.0],  # 10 R_KNE
+        [290.0, -232.0, 654.0],  # 11 R_HIP
+        [600.0, 81.0, 633.0],  # 12 L_THI
+    ]
+    geo = _geometry(
+        1220.0,
+        {
+            ("ANK", "HEE"): 48.0,
+            ("ANK", "TOE"): 98.0,
+            ("HEE", "TOE"): 145.0,
+            ("KNE", "ANK"): 411.0,
+            ("HIP", "KNE"): 411.0,
+        },
+    )
+    assigned = {"R_SHO": 7, "R_HIP": 11, "R_PSI": 1, "R_ASI": 3, "L_ASI": 2}
+    a = _lower(blobs, {}, assigned, geo, [317.0, -192.0, 1223.0], "R", 1)
+    assert a[MARKER_INDEX["R_TIB"]] in (5, -1)
+    assert a[MARKER_INDEX["R_ANK"]] != 5
+    assert a[MARKER_INDEX["R_KNE"]] in (10, -1)

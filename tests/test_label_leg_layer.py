@@ -1,0 +1,58 @@
+"""Label output: a knee's depth layer chosen by continuity when something passes in front."""
+
+from __future__ import annotations
+
+import numpy as np
+from gaitflow.schemas import Markers3D
+from gaitflow.stages import label
+
+from gaitflow.markers import MARKER_INDEX
+
+KNE = MARKER_INDEX["L_KNE"]
+HIP = MARKER_INDEX["L_HIP"]
+
+
+def _markers(frame: int, knee_normal_z: float, knee_bottom_z: float) -> Markers3D:
+    """Two blobs: 0 = a hip (all modes 2600 mm), 1 = a knee with its normal (and top) and
+    bottom layers at the given depths."""
+    pos = np.zeros((2, 3, 3))
+    pos[0, :, :] = [100.0, 0.0, 2600.0]
+    pos[1, :2, :] = [120.0, 400.0, knee_normal_z]
+    pos[1, 2, :] = [120.0, 400.0, knee_bottom_z]
+    return Markers3D(
+        header=Markers3D.make_header("c", "walk-01", frame, frame),
+        centroid=np.array([[300.0, 200.0], [305.0, 260.0]]),
+        marker_radius=np.full(2, 2.0),
+        region_radius=np.full(2, 4.0),
+        depth=pos[:, :, 2].copy(),
+        position=pos,
+    )
+
+
+def _assign() -> np.ndarray:
+    a = np.full(20, -1)
+    a[HIP], a[KNE] = 0, 1
+    return a
+
+
+def test_a_hand_in_front_of_the_knee_gives_way_to_the_layer_that_continues_it() -> None:
+    prev = (np.full(20, np.nan), np.full(20, -(10**9)))
+    # frame 0: one layer only; frame 1: a hand 90 mm in front of the knee for a frame
+    out, prev = label._output(_markers(0, 2610.0, 2610.0), _assign(), 1, "L", prev)
+    assert out.position[KNE, 2] == 2610.0
+    out, prev = label._output(_markers(1, 2520.0, 2612.0), _assign(), 1, "L", prev)
+    assert out.position[KNE, 2] == 2612.0
+    assert out.position[HIP, 2] == 2600.0  # not a leg marker: its own mode
+
+
+def test_without_a_recent_depth_the_own_mode_stands() -> None:
+    # no previous depth (None), or one too old: the knee keeps its own (normal) mode
+    out, _ = label._output(_markers(1, 2520.0, 2612.0), _assign(), 1, "L", None)
+    assert out.position[KNE, 2] == 2520.0
+    stale = (np.full(20, 2610.0), np.full(20, -10))
+    out, _ = label._output(_markers(1, 2520.0, 2612.0), _assign(), 1, "L", stale)
+    assert out.position[KNE, 2] == 2520.0
+    # a small difference is no reason to leave the own mode
+    near = (np.full(20, 2610.0), np.zeros(20, int))
+    out, _ = label._output(_markers(1, 2600.0, 2612.0), _assign(), 1, "L", near)
+    assert out.position[KNE, 2] == 2600.0

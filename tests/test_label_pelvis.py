@@ -1,0 +1,93 @@
+"""Label stage, pelvis search: the hip below every iliac spine, still and huge blobs left out.
+
+Literal layouts in the floor frame (forward along the walking direction, e away from the
+camera, height; mm) around the stature-scaled template subject (no static model), with the
+shoulder at (0, 0, H) and no marker tracks (the model's standing offsets predict).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gaitflow.stages import label
+
+from gaitflow.markers import MARKER_INDEX
+
+HIP = MARKER_INDEX["R_HIP"]
+
+
+def _pelvis(blobs: np.ndarray, still: np.ndarray | None = None) -> np.ndarray:
+    """Run the pelvis search (near side R) on blobs (N, 3); return the (20,) assignment."""
+    geo = label.Geometry.from_model(None)
+    sho = np.array([0.0, 0.0, geo.sho_h])
+    st = label.init(label.PARAMS.resolve({}))
+    pred, sig, tracked = label._predictions(st, geo, sho, "R", 1, 10)
+    qm = np.repeat(np.asarray(blobs, float)[:, None, :], 3, axis=1)
+    fr = label._Frame(
+        qm,
+        np.ones(len(blobs), bool),
+        np.full(20, -1),
+        pred,
+        sig,
+        "R",
+        tracked,
+        4.0,
+        np.full(20, 10**9),
+        False,
+        still,
+    )
+    label._pelvis(fr, geo, sho, geo.sho_h, 4.0)
+    return fr.assign
+
+
+def _standing(name: str, df: float = 0.0, dh: float = 0.0) -> np.ndarray:
+    geo = label.Geometry.from_model(None)
+    sho = np.array([0.0, 0.0, geo.sho_h])
+    st = label.init(label.PARAMS.resolve({}))
+    pred, _, _ = label._predictions(st, geo, sho, "R", 1, 10)
+    return pred[MARKER_INDEX[name]] + np.array([df, 0.0, dh])
+
+
+@pytest.mark.parametrize("df, dh", [(-60.0, 0.0), (-100.0, -10.0), (-60.0, -15.0)])
+def test_hidden_hip_does_not_take_the_near_asi(df: float, dh: float) -> None:
+    # Hip hidden; the near ASI (a little behind its standing place, as the trunk leans)
+    # level with the far ASI: the hip must stay below both spines, so no hip label (the
+    # stage before this rule named the near ASI blob R_HIP).
+    blobs = np.array([_standing("R_PSI"), _standing("R_ASI", df, dh), _standing("L_ASI")])
+    assert _pelvis(blobs)[HIP] == -1
+
+
+def test_visible_hip_still_labelled() -> None:
+    blobs = np.array(
+        [_standing("R_PSI"), _standing("R_HIP", 10.0), _standing("R_ASI"), _standing("L_ASI")]
+    )
+    assert _pelvis(blobs)[HIP] == 1
+
+
+def test_still_blob_is_no_hip() -> None:
+    # A stray where the hip should be: a hip while it moves with the subject, left out when
+    # it stood still since the last frame (a reflector, a hand held still).
+    blobs = np.array([_standing("R_PSI"), _standing("R_HIP", 10.0), _standing("R_ASI")])
+    assert _pelvis(blobs)[HIP] == 1
+    assert _pelvis(blobs, np.array([False, True, False]))[HIP] == -1
+
+
+def test_still_flags_blobs_that_stayed_put() -> None:
+    ah = np.array([[100.0, 800.0], [500.0, 700.0], [np.nan, np.nan]])
+    prev = np.array([[98.0, 801.0], [460.0, 700.0]])
+    # The shoulder moved 40 mm: a blob within 10 mm of a last-frame blob stood still.
+    assert label._still(ah, prev, 40.0).tolist() == [True, False, False]
+    # Standing subject, dropped frames or a first frame: nothing is judged.
+    assert label._still(ah, prev, 10.0) is None
+    assert label._still(ah, None, 40.0) is None
+
+
+def test_huge_blobs_are_no_markers() -> None:
+    # Median radius 1.2 px: a merged pair (2.4 px, twice the median) stays a candidate, a
+    # hand-sized blob (4.7 px, as the bundled walk's stray) does not.
+    r = np.array([1.2, 1.1, 1.3, 2.4, 4.7, 1.2])
+    assert label._huge(r, 6).tolist() == [False, False, False, False, True, False]
+    # Too few blobs for a median, a length mismatch or no radii: nothing is judged.
+    assert not label._huge(r[:4], 4).any()
+    assert not label._huge(r, 7).any()
+    assert not label._huge(None, 6).any()
