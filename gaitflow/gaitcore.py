@@ -1074,6 +1074,51 @@ def foot_contacts(
     return out
 
 
+def drop_shared_footprints(
+    contacts: dict[str, list[Contact]],
+    min_sep_mm: float = 60.0,
+    t: np.ndarray | None = None,
+    heel_prog: dict[str, np.ndarray] | None = None,
+) -> dict[str, list[Contact]]:
+    """Contacts without the ones that land on the other foot's footprint (departure).
+
+    Two feet cannot stand on one spot at the same time: a stance whose heel strikes within
+    ``min_sep_mm`` (along the walking direction) of where the other foot's heel struck,
+    while that foot still stands, is a heel label on the wrong foot, not a contact; left
+    in, it gives a false heel strike and a step of a few mm followed by one of about a
+    stride. The later of the two is dropped (the other was there first). Heel positions
+    at a strike come from ``heel_prog`` at that time, else the stance's median
+    (``Contact.heel_pos``), as in :func:`spatiotemporal`. ``min_sep_mm`` <= 0: no change.
+
+    contacts : {"L": [...], "R": [...]} one pass. t : (N,) s; heel_prog : {"L": (N,),
+    "R": (N,)} mm, optional.
+    """
+    out = {s: list(contacts.get(s, [])) for s in SIDES}
+    if min_sep_mm <= 0:
+        return out
+
+    def at_strike(c: Contact) -> float:
+        if t is not None and heel_prog is not None and _finite(c.heel_strike):
+            v = _at(t, heel_prog[c.side], c.heel_strike)
+            if np.isfinite(v):
+                return v
+        return c.heel_pos
+
+    for side in SIDES:
+        other = "R" if side == "L" else "L"
+        out[side] = [
+            c
+            for c in out[side]
+            if not any(
+                _finite(c.heel_strike)
+                and o.start < c.heel_strike <= o.stop
+                and abs(at_strike(c) - at_strike(o)) < min_sep_mm
+                for o in contacts.get(other, [])
+            )
+        ]
+    return out
+
+
 def events_from_contacts(contacts: Sequence[Contact]) -> list[dict]:
     """Gait events as results.md records ``{"side", "kind", "time_s"}``, sorted by time."""
     ev = []

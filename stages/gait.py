@@ -126,6 +126,14 @@ PARAMS = ParamSet(
             "projected on the sagittal plane (floor normal and walkway axis; departure)",
             choices=("3d", "sagittal"),
         ),
+        Param(
+            "min_step_mm",
+            float,
+            60.0,
+            "mm",
+            "a stance this close to the other foot's overlapping stance is a mislabel (0 = off)",
+            0.0,
+        ),
         Param("min_pass_s", float, 0.6, "s", "shortest walking pass", 0.1),
         Param("min_speed_mm_s", float, 150.0, "mm/s", "slower than this is not walking", 1.0),
         Param("live_every", int, 15, "frames", "live event search period (0 = at the end)", 0),
@@ -481,6 +489,7 @@ def analyse(
                     tilt[s] = gc.progression(
                         pq[sl, MARKER_INDEX[f"{s}_KNE"]], origin, u
                     ) - gc.progression(pq[sl, MARKER_INDEX[f"{s}_ANK"]], origin, u)
+            contacts = gc.drop_shared_footprints(contacts, p["min_step_mm"], tq[sl], prog_heel)
             near = ""  # live events do not need it
             if not live:
                 inside = np.flatnonzero((tq[ps.start] <= t) & (t <= tq[ps.stop - 1])).tolist()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -253,6 +254,27 @@ def test_step_needs_the_contralateral_strike_after_the_previous_own_strike():
     }
     st = gc.spatiotemporal(contacts)
     assert st["L"]["step_length_mm"] == [500.0]
+
+
+def test_a_stance_on_the_other_foots_footprint_is_dropped():
+    # R "lands" at 1.2 s where L has stood since 1.0 s: the R heel label sat on the L heel
+    c = gc.Contact
+    contacts = {
+        "L": [c("L", 0.0, 0.2, 0.3, 0.0, 0.0, 0.3), c("L", 1.0, 1.3, 1.5, 1000.0, 1.0, 1.4)],
+        "R": [c("R", 0.5, 0.8, 1.0, 500.0, 0.5, 0.9), c("R", 1.2, 1.3, 1.4, 1002.0, 1.2, 1.4)],
+    }
+    out = gc.drop_shared_footprints(contacts, 60.0)
+    assert [x.heel_strike for x in out["R"]] == [0.5]
+    assert out["L"] == contacts["L"]
+    # apart in space, or not at the same time, both stay; 0 turns the rule off
+    r1 = contacts["R"][1]
+    far = {**contacts, "R": [contacts["R"][0], dataclasses.replace(r1, heel_pos=1100.0)]}
+    assert len(gc.drop_shared_footprints(far, 60.0)["R"]) == 2
+    later = dataclasses.replace(r1, heel_strike=1.6, start=1.6, stop=1.8)  # L has left
+    assert len(gc.drop_shared_footprints({**contacts, "R": [later]}, 60.0)["R"]) == 1
+    assert len(gc.drop_shared_footprints(contacts, 0.0)["R"]) == 2
+    st = gc.spatiotemporal(out)
+    assert st["R"]["step_length_mm"] == [500.0] and st["L"]["step_length_mm"] == [500.0]
 
 
 def test_split_passes_forth_and_back():
