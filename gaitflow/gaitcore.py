@@ -1098,11 +1098,7 @@ def drop_shared_footprints(
         return out
 
     def at_strike(c: Contact) -> float:
-        if t is not None and heel_prog is not None and _finite(c.heel_strike):
-            v = _at(t, heel_prog[c.side], c.heel_strike)
-            if np.isfinite(v):
-                return v
-        return c.heel_pos
+        return _heel_at(t, heel_prog, c.side, c.heel_strike, c.heel_pos)
 
     for side in SIDES:
         other = "R" if side == "L" else "L"
@@ -1147,6 +1143,21 @@ def _at(t: np.ndarray, x: np.ndarray, when: float) -> float:
     return float(a + w * (b - a))
 
 
+def _heel_at(
+    t: np.ndarray | None,
+    heel_prog: dict[str, np.ndarray] | None,
+    side: str,
+    when: float,
+    fallback: float,
+) -> float:
+    """The heel's position along the walk at ``when`` from ``heel_prog``, else ``fallback``
+    (no trajectories, or the heel unseen then)."""
+    if t is None or heel_prog is None or side not in heel_prog or not _finite(when):
+        return fallback
+    v = _at(t, heel_prog[side], when)
+    return v if np.isfinite(v) else fallback
+
+
 def spatiotemporal(
     contacts: dict[str, list[Contact]],
     direction: float = 1.0,
@@ -1184,12 +1195,6 @@ def spatiotemporal(
     strike with the figures that belong to it (times included, for matching); stride totals.
     """
 
-    def pos(side: str, when: float, fallback: float) -> float:
-        if t is None or heel_prog is None or side not in heel_prog:
-            return fallback
-        v = _at(t, heel_prog[side], when)
-        return v if np.isfinite(v) else fallback
-
     out: dict = {}
     stride_len_total = 0.0
     stride_time_total = 0.0
@@ -1219,11 +1224,11 @@ def spatiotemporal(
                 and (o.heel_strike if _finite(o.heel_strike) else o.start) > own_prev
             ]
             if prior:
-                here = pos(side, c.heel_strike, c.heel_pos)
+                here = _heel_at(t, heel_prog, side, c.heel_strike, c.heel_pos)
                 o = prior[-1]
                 # the trailing heel where it struck (its footprint), not where it has rolled to
                 there = (
-                    pos(other, o.heel_strike, o.heel_pos)
+                    _heel_at(t, heel_prog, other, o.heel_strike, o.heel_pos)
                     if _finite(o.heel_strike)
                     else (o.heel_pos)
                 )
@@ -1244,8 +1249,8 @@ def spatiotemporal(
             )
             if nxt is not None and _finite(nxt.heel_strike) and between <= 1:
                 rec["next_heel_strike_s"] = round(nxt.heel_strike, 4)
-                a = pos(side, c.heel_strike, c.heel_pos)
-                b = pos(side, nxt.heel_strike, nxt.heel_pos)
+                a = _heel_at(t, heel_prog, side, c.heel_strike, c.heel_pos)
+                b = _heel_at(t, heel_prog, side, nxt.heel_strike, nxt.heel_pos)
                 sl = direction * (b - a)
                 if _finite(sl) and sl > 0:
                     stride.append(round(float(sl), 2))

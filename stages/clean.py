@@ -51,6 +51,7 @@ from filterpy.kalman import update as kf_update
 from gaitflow.schemas import CalibrationRecord, CleanFrame, RawFrame
 from gaitflow.stages.base import Inputs, StageSpec
 from gaitflow.stages.detect import E_MAX, block_max, compact_roi, components, initial_w
+from gaitflow.stages.warmup import stage_warmup
 
 from gaitflow.errors import ParameterError, StageError
 from gaitflow.markers import trial_kind
@@ -327,19 +328,13 @@ def step(state: CleanState, inputs: Inputs) -> tuple[CleanState, list]:
     return new, [out]
 
 
-def warmup(params: dict[str, Any]) -> None:
-    """Load the compiled kernels before the stage reports ready (``stages/warmup.py``)."""
-    from gaitflow.stages.warmup import run_chain
-
-    run_chain("clean", params)
-
-
 SPEC = StageSpec(
     name="clean",
     params=PARAMS,
     init=init,
     step=step,
     stateful=True,
-    warmup=warmup,
+    # loads the compiled kernels before the stage reports ready
+    warmup=stage_warmup("clean"),
     doc=__doc__ or "",
 )

@@ -111,6 +111,7 @@ import cv2
 import numpy as np
 from gaitflow.schemas import Blobs, CalibrationRecord, CleanFrame
 from gaitflow.stages.base import Inputs, StageSpec
+from gaitflow.stages.warmup import stage_warmup
 
 from gaitflow.errors import StageError
 from gaitflow.params import Param, ParamSet
@@ -1227,19 +1228,13 @@ def step(state: DetectState, inputs: Inputs) -> tuple[DetectState, list]:
     return DetectState(p, cams, state.frames + 1), [out]
 
 
-def warmup(params: dict[str, Any]) -> None:
-    """Load the compiled kernels before the stage reports ready (``stages/warmup.py``)."""
-    from gaitflow.stages.warmup import run_chain
-
-    run_chain("detect", params)
-
-
 SPEC = StageSpec(
     name="detect",
     params=PARAMS,
     init=init,
     step=step,
     stateful=True,
-    warmup=warmup,
+    # loads the compiled kernels before the stage reports ready
+    warmup=stage_warmup("detect"),
     doc=__doc__ or "",
 )

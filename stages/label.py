@@ -1451,10 +1451,7 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
         near = ""
     direction = st.direction if st.sho_x is not None else 0
     track = p["leg_layer"] == "track"
-    prev = st.leg_depth if track and st.leg_depth is not None else None
-    if track and prev is None:
-        prev = (np.full(20, np.nan), np.full(20, -(10**9)))
-    out, leg_depth = _output(mk, assign, direction, near, prev)
+    out, leg_depth = _output(mk, assign, direction, near, st.leg_depth if track else None)
     return replace(st, leg_depth=leg_depth if track else None), [out]
 
 

@@ -90,6 +90,7 @@ from typing import Any
 import numpy as np
 from gaitflow.schemas import Blobs, CleanFrame, Markers3D
 from gaitflow.stages.base import Inputs, StageSpec
+from gaitflow.stages.warmup import stage_warmup
 
 from gaitflow.camera import Camera
 from gaitflow.errors import InputError, StageError
@@ -211,8 +212,8 @@ PARAMS = ParamSet(
             bool,
             True,
             "-",
-            "Alg. 3 as one compiled (numba) kernel (with top_half and surface_fit off); "
-            "identical outputs, false = the numpy reference",
+            "Alg. 3 and R9 as compiled (numba) kernels (without top_half and the fit's "
+            "cautious options); the same outputs, false = the numpy reference",
         ),
         Param(
             "camera",
@@ -572,9 +573,9 @@ def locate_depths(
 
     Vectorised over blobs (one flat pass, or padded windows per size class with
     ``top_half``), with the same result as calling :func:`locate_depth` per blob. With
-    ``jit`` (and ``top_half`` and ``surface_fit`` off, the defaults; integer depth) the
-    flat pass is the compiled kernel ``alg_kernels.locate_depths``, identical to
-    :func:`_ragged`.
+    ``jit`` (no ``top_half``, the surface fit plain or off, integer depth: :func:`_jit`) the
+    flat pass is the compiled kernel ``alg_kernels.locate_depths``, equal to
+    :func:`_ragged` (module docstring).
 
     Parameters
     ----------
@@ -865,30 +866,25 @@ def locate_all(
     """
     n = centroid.shape[0]
     zs = locate_depths(depth, centroid, region_radius, params)
-    pos = np.full((n, 3, 3), np.nan)
-    if n and params["jit"]:
+    if not n:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
+    xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
+    if diameter is None:
+        diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
+    offset = bool(params["surface_offset"] and diameter > 0)
+    back = 0.5 * diameter + params["marker_base_mm"]
+    if params["jit"]:
         from gaitflow.stages import alg_kernels
 
-        if diameter is None:
-            diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
-        pos = alg_kernels.marker_points(
-            camera.undistort(centroid),
-            zs,
-            bool(params["surface_offset"] and diameter > 0),
-            0.5 * diameter + params["marker_base_mm"],
-        )
-    elif n:
-        xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
+        pos = alg_kernels.marker_points(xy, zs, offset, back)
+    else:
         ray = np.ones((n, 1, 3))
         ray[:, 0, :2] = xy
         pos = ray * zs[:, :, None]  # [blob, mode, xyz]: (x', y', 1) * Z
-        if diameter is None:
-            diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
-        if params["surface_offset"] and diameter > 0:
+        if offset:
             # |pos| = Z |ray|: one norm per blob, shared by the modes.
             norm = zs * np.sqrt(np.einsum("nij,nij->ni", ray, ray))
             with np.errstate(invalid="ignore", divide="ignore"):
-                back = 0.5 * diameter + params["marker_base_mm"]
                 pos *= np.clip(1.0 - back / norm, 0.0, None)[:, :, None]
     return pos[:, :, 2].copy(), pos
 
@@ -963,19 +959,13 @@ def step(state: LocateState, inputs: Inputs) -> tuple[LocateState, list]:
     return state, [out]
 
 
-def warmup(params: dict[str, Any]) -> None:
-    """Load the compiled kernels before the stage reports ready (``stages/warmup.py``)."""
-    from gaitflow.stages.warmup import run_chain
-
-    run_chain("locate", params)
-
-
 SPEC = StageSpec(
     name="locate",
     params=PARAMS,
     init=init,
     step=step,
     stateful=False,
-    warmup=warmup,
+    # loads the compiled kernels before the stage reports ready
+    warmup=stage_warmup("locate"),
     doc=__doc__ or "",
 )

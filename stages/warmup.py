@@ -19,8 +19,9 @@ Array conventions: images (row, col), uint16; depth mm, 0 = invalid.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
-from typing import Any
+import functools
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
 
 import numpy as np
 from gaitflow.schemas import Message, RawFrame, decode
@@ -28,6 +29,7 @@ from gaitflow.schemas import Message, RawFrame, decode
 from gaitflow.errors import StageError
 
 CHAIN = ("clean", "detect", "locate")
+M = TypeVar("M", bound=Message)
 FRAME_SHAPE = (48, 64)  # rows, cols: small, the kernels' types do not depend on the size
 
 
@@ -42,20 +44,21 @@ def synthetic_raw(readonly: bool) -> RawFrame:
         ir[disc] = 60000
         depth[disc] = 0
     msg = RawFrame(header=RawFrame.make_header("warmup", "walk-01", 0, 0), ir=ir, depth=depth)
-    out = decode(RawFrame, msg.encode())
+    return _through_codec(msg, readonly)
+
+
+def _through_codec(msg: M, readonly: bool) -> M:
+    """``msg`` encoded and decoded as the bus runtime has it (read-only arrays), or with
+    every array field copied (writeable), as the in-process runner has it."""
+    out = decode(type(msg), msg.encode())
     if readonly:
         return out
-    return RawFrame(header=out.header, ir=out.ir.copy(), depth=out.depth.copy())
-
-
-def _writeable(msg: Message) -> Message:
-    """The message with every array field copied (writeable), as the inline runner has it."""
     arrays = {
-        f.name: getattr(msg, f.name).copy()
-        for f in dataclasses.fields(msg)
-        if isinstance(getattr(msg, f.name), np.ndarray)
+        f.name: getattr(out, f.name).copy()
+        for f in dataclasses.fields(out)
+        if isinstance(getattr(out, f.name), np.ndarray)
     }
-    return dataclasses.replace(msg, **arrays)
+    return dataclasses.replace(out, **arrays)
 
 
 def run_chain(upto: str, params: Mapping[str, Any]) -> None:
@@ -79,5 +82,11 @@ def run_chain(upto: str, params: Mapping[str, Any]) -> None:
                 break
             if len(out) != 1:
                 raise StageError(name, f"warm-up produced {len(out)} messages, expected 1")
-            enc = decode(type(out[0]), out[0].encode())
-            msgs[out[0].STREAM] = enc if readonly else _writeable(enc)
+            msgs[out[0].STREAM] = _through_codec(out[0], readonly)
+
+
+def stage_warmup(stage: str) -> Callable[[dict[str, Any]], None]:
+    """The ``StageSpec.warmup`` of a stage of :data:`CHAIN`: :func:`run_chain` up to it."""
+    if stage not in CHAIN:
+        raise StageError(stage, f"no warm-up chain for stage {stage!r}")
+    return functools.partial(run_chain, stage)

@@ -15,4 +15,4 @@ def compiled_kernels() -> None:
     """
     from gaitflow.stages import locate
 
-    locate.warmup(locate.PARAMS.resolve({}))
+    locate.SPEC.warmup(locate.PARAMS.resolve({}))

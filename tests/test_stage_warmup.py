@@ -10,7 +10,7 @@ from gaitflow.errors import StageError
 
 
 def test_locate_warmup_loads_the_kernels_for_decoded_and_writeable_frames() -> None:
-    locate.warmup(locate.PARAMS.resolve({}))
+    locate.SPEC.warmup(locate.PARAMS.resolve({}))
     # a decoded bus message is read-only: numba compiles that as its own signature, which
     # the first frame off the bus would otherwise wait for
     depth_types = {sig[0] for sig in alg_kernels.locate_depths.signatures}
