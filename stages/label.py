@@ -18,7 +18,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    track (the far shoulder) never continues it. The first shoulder is a shoulder-height
    blob with body markers below it and nearer the camera than they are;
 3. the walking direction is the sign of the shoulder's velocity along a (first sight:
-   toward the far end of the walkway; then ``flip_frames`` frames against it to change).
+   toward the far end of the walkway, or, when a track that ended for misses restarts
+   within ``max_missed`` frames, the shoulder blob's move since the last frame
+   (``_shoulder_move``); then ``flip_frames`` frames against it to change).
    The side facing the camera follows (walking toward +u shows the right side). A change of
    direction resets every track and re-acquires the near shoulder: the return pass shows
    the other side (the L/R swap). While turning (slow along the line, or heading off it)
@@ -42,11 +44,12 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims;
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
    limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
-   ANK; THI and TIB on their segments, ``_on_segment``; near knee and thigh at the near
-   leg's depth, far knee and thigh, deeper, absorb their blobs; the pelvis's hip label is
-   a slot too, and dropped when the leg below contradicts it; the blob on the knee's fresh
-   track is kept from the foot search). Segment lengths more than 25 % off the
-   stature-scaled template fall back to it (a static labelling error);
+   ANK; THI and TIB on their segments, ``_on_segment``; the thigh wand above the knee
+   marker, always; near knee and thigh at the near leg's depth, far knee and thigh, deeper,
+   absorb their blobs; the pelvis's hip label is a slot too, and dropped when the leg
+   below contradicts it; the blob on the knee's fresh track is kept from the foot search).
+   Segment lengths more than 25 % off the stature-scaled template fall back to it (a
+   static labelling error);
 6. a label is left NaN rather than guessed when another blob fits it almost as well
    (``ambiguity``) or it breaks a track gate or a rigid distance: an occluded marker gives a
    gap, not a wrong label. Blobs left over (stray reflectors, far-side leg markers) stay
@@ -113,6 +116,16 @@ PARAMS = ParamSet(
             0.0,
         ),
         Param("flip_frames", int, 3, "frames", "frames against the direction before it flips", 1),
+        Param(
+            "sho_reach",
+            float,
+            0.1,
+            "x shoulder height",
+            "a restarted shoulder track's blob is last frame's blob within this reach (3D) when"
+            " its move decides the direction (a walking shoulder moves 10-50 mm per frame)",
+            0.01,
+            1.0,
+        ),
         Param("track_age", int, 3, "frames", "frames a marker track predicts after a miss", 0),
         Param("gate", float, 4.0, "sigma", "per-label acceptance gate", 1.0, 100.0),
         Param(
@@ -326,6 +339,7 @@ class LabelState:
     sho_x: np.ndarray | None = None  # (6,) KF state, None = no track
     sho_cov: np.ndarray | None = None
     sho_missed: int = 0
+    sho_lost: int = -(10**9)  # frame in which the last shoulder track ended for misses
     direction: int = 0
     flip_count: int = 0
     walked: bool = False
@@ -333,8 +347,9 @@ class LabelState:
     vel: np.ndarray | None = None
     seen: np.ndarray | None = None
     frames: int = 0
-    # (N, 2) last frame's blobs (a, h), normal mode, mm: which blobs stood still (_still).
-    prev_ah: np.ndarray | None = None
+    # (N, 3) last frame's blobs (a, e, h), normal mode, mm: which blobs stood still
+    # (_still), and a restarted shoulder track's first move (_shoulder_move).
+    prev_q: np.ndarray | None = None
     labelled: int = 0
     foot: np.ndarray | None = None  # (3,) learned ANK-HEE, ANK-TOE, HEE-TOE, mm
     foot_n: int = 0
@@ -348,6 +363,22 @@ class LabelState:
 def init(params: dict[str, Any]) -> LabelState:
     """Initial state; ``params`` are resolved by :data:`PARAMS`."""
     return _reset_tracks(LabelState(params=dict(params)))
+
+
+def _end_shoulder(st: LabelState, frame_idx: int) -> LabelState:
+    """The shoulder track ended for misses in frame ``frame_idx``: no track, no direction,
+    every marker track reset (see ``sho_lost``)."""
+    return _reset_tracks(
+        replace(
+            st,
+            sho_x=None,
+            sho_cov=None,
+            sho_missed=0,
+            direction=0,
+            walked=False,
+            sho_lost=frame_idx,
+        )
+    )
 
 
 def _reset_tracks(st: LabelState) -> LabelState:
@@ -620,7 +651,7 @@ def label_frame(
     # (st.frame and st.frames are updated on the way out.)
     top = fm[:, CLUSTER_MODES.index("top")]
     ah = floor[:, [0, 2]]
-    prev_ah = st.prev_ah if dt_frames == 1 else None
+    prev_q = st.prev_q if dt_frames == 1 else None
 
     # Steps 1-3: the shoulder (top mode).
     band = ok & (top[:, 2] > 0.85 * H) & (top[:, 2] < 1.15 * H)
@@ -629,9 +660,7 @@ def label_frame(
         # Frames that never arrived (dropped, or nobody in view) count as misses.
         st = replace(st, sho_missed=st.sho_missed + dt_frames - 1)
     if st.sho_x is not None and st.sho_missed > p["max_missed"]:
-        st = _reset_tracks(
-            replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
-        )
+        st = _end_shoulder(st, frame_idx)
     if st.sho_x is not None:
         kx, kP = _kf_predict(st.sho_x, st.sho_cov, dt)
         # The gate widens with misses, at most to twice its size: a shoulder that shows up
@@ -657,22 +686,18 @@ def label_frame(
         if sho_blob >= 0 and st.sho_missed >= 3:
             # Back after a gap (out of view, turning): start afresh, the subject may have
             # turned round.
-            st = _reset_tracks(
-                replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
-            )
+            st = _end_shoulder(st, frame_idx)
         elif sho_blob >= 0:
             kx, kP = _kf_update(kx, kP, top[sho_blob], dt)
             st = replace(st, sho_x=kx, sho_cov=kP, sho_missed=0)
         elif st.sho_missed < p["max_missed"]:
             st = replace(st, sho_x=kx, sho_cov=kP, sho_missed=st.sho_missed + 1)
         else:
-            st = _reset_tracks(
-                replace(st, sho_x=None, sho_cov=None, sho_missed=0, direction=0, walked=False)
-            )
+            st = _end_shoulder(st, frame_idx)
     if st.sho_x is None:
         sho_blob = _acquire_shoulder(top, ok, band, H)
         if sho_blob < 0:
-            return replace(st, frame=frame_idx, frames=st.frames + 1, prev_ah=ah), assign
+            return replace(st, frame=frame_idx, frames=st.frames + 1, prev_q=floor), assign
         x = np.concatenate([top[sho_blob], np.zeros(3)])
         P = np.diag([20.0**2] * 3 + [1500.0**2] * 3)
         st = _reset_tracks(replace(st, sho_x=x, sho_cov=P, sho_missed=0, direction=0, flip_count=0))
@@ -685,6 +710,15 @@ def label_frame(
         direction = 1 if float(st.sho_x[0]) < 0.5 * ff.length else -1
         if abs(va) > p["dir_speed"]:
             direction = 1 if va > 0 else -1
+        elif sho_blob >= 0 and frame_idx - st.sho_lost <= p["max_missed"]:
+            # A track that ended for misses (within max_missed frames) restarts
+            # mid-walkway, where "toward the far end" is a guess: it named the wrong side
+            # for the frames the new track needs to gain a velocity. The shoulder blob's
+            # move since the last frame tells. Not at a pass's first sight: a blob entering
+            # the image at its edge moves with its visible part.
+            da = _shoulder_move(floor[sho_blob], prev_q, p["sho_reach"] * H)
+            if abs(da) > p["dir_speed"] * dt:
+                direction = 1 if da > 0 else -1
     elif abs(va) > p["dir_speed"] and np.sign(va) != direction:
         flips += 1
         if flips >= p["flip_frames"]:
@@ -731,7 +765,7 @@ def label_frame(
             p["ambiguity"],
             age,
             p["publish_asis_psis"],
-            _still(ah, prev_ah, abs(va) * dt),
+            _still(ah, None if prev_q is None else prev_q[:, [0, 2]], abs(va) * dt),
         )
         _pelvis(fr, geo, sho, H, p["gate"])
         _lower(fr, geo, sho, H, p["gate"])
@@ -757,7 +791,7 @@ def label_frame(
         vel=vel,
         seen=seen,
         labelled=st.labelled + int((assign >= 0).sum()),
-        prev_ah=ah,
+        prev_q=floor,
     )
     if st.direction:
         st = _learn_foot(st, fm, assign, geo, "R" if st.direction > 0 else "L")
@@ -847,6 +881,20 @@ def _still(ah: np.ndarray, prev: np.ndarray | None, moved: float) -> np.ndarray 
         return None
     d = np.hypot(ah[:, None, 0] - prev[None, :, 0], ah[:, None, 1] - prev[None, :, 1])
     return np.nan_to_num(d, nan=np.inf).min(axis=1) < STILL_FRAC * moved
+
+
+def _shoulder_move(cur: np.ndarray, prev: np.ndarray | None, reach: float) -> float:
+    """The move (mm) along the walking line of the blob at ``cur`` (3,) since the last frame.
+
+    ``cur`` is (a, e, h), mm; ``prev`` (P, 3) the last frame's blobs (None: no last frame).
+    The blob's last position is the nearest of ``prev`` within ``reach`` mm, in 3D: the far
+    shoulder lies as high and about as far along, but ~250 mm deeper. 0.0 without one.
+    """
+    if prev is None or len(prev) == 0 or not np.isfinite(cur).all():
+        return 0.0
+    d = np.nan_to_num(np.linalg.norm(prev - cur, axis=1), nan=np.inf)
+    j = int(np.argmin(d))
+    return float(cur[0] - prev[j, 0]) if d[j] < reach else 0.0
 
 
 def _nearest_shoulder(top: np.ndarray, band: np.ndarray, x: np.ndarray, H: float) -> int:
@@ -1205,7 +1253,8 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     ]
     ref_e = float(np.mean([r[1] for r in ref])) if ref else np.nan
     # Without a pelvis hip the knee-thigh spacing counts only with all five slots filled
-    # (as before the hip check; the absorbed hip blob is not a confirmed hip).
+    # (as before the hip check; the absorbed hip blob is not a confirmed hip); the order
+    # (thigh above knee) always counts.
     both = pr[:, :2].all(axis=1) if hip_blob >= 0 else pr.all(axis=1)
     chain = both & pr[:, 4] & (hip_blob >= 0)
     kne_h = geo.rel_sho("near", "KNE")[2]
@@ -1227,7 +1276,10 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             h3.forbid((k,), lambda p: ~(p[:, 1] < ref_e + 50.0))
     for k in (0, 1):
         h3.forbid((k,), lambda p: p[:, 2] > 0.6 * kne_h)
-    h3.forbid((0, 1), lambda pk, pt: pt[:, 2] > pk[:, 2], where=both)
+    # The thigh wand sits on the thigh, above the knee marker, whatever else is seen. It
+    # may sit only 50-70 mm above the knee; when this counted only with all five slots
+    # filled, a frame without a hip label let the two swap.
+    h3.forbid((0, 1), lambda pk, pt: pt[:, 2] > pk[:, 2])
     # Costs: thigh and shank lengths, the wands on their segments, the near leg's depth.
     h3.add((4, 0), lambda ph, pk: _rigid(ph, pk, thigh))
     h3.add((4, 1), lambda ph, pt: _interval(ph, pt, 0.1 * thigh, 0.9 * thigh))

@@ -1,0 +1,122 @@
+"""Label stage: the thigh wand above the knee (limb search) and the walking direction of a
+shoulder track that restarts mid-walkway.
+
+Literal layouts in the floor frame (forward along the walking direction, e away from the
+camera, height; mm) around the stature-scaled template subject (no static model).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from gaitflow.stages import label
+from gaitflow.stages.model import FloorFrame
+from test_label_accuracy import _leg_frame
+
+from gaitflow.evaluate_label import calibration_record, to_camera
+from gaitflow.markers import MARKER_INDEX
+
+
+def _low_thigh_frame() -> tuple[label._Frame, dict[str, int], label.Geometry, np.ndarray]:
+    """Near leg R at the template's standing offsets, hip hidden (``_leg_frame``), and the
+    thigh wand only 60 mm above the knee marker (10 mm behind, 20 mm nearer the camera: a
+    wand on the lower thigh); the thigh's stale track (2 frames old) predicts it at the
+    knee blob."""
+    fr, blob, geo, sho = _leg_frame()
+    thi, kne = blob["THI"], blob["KNE"]
+    fr.qm[thi] = fr.qm[kne] + (-10.0, -20.0, 60.0)
+    i = MARKER_INDEX["R_THI"]
+    fr.pred[i], fr.sig[i] = fr.qm[kne, 0], (70.0, 90.0, 70.0)
+    fr.tracked[i], fr.age[i] = True, 2
+    return fr, blob, geo, sho
+
+
+def test_thigh_wand_low_on_the_thigh_is_not_swapped_with_the_knee() -> None:
+    fr, blob, geo, sho = _low_thigh_frame()
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    thi, kne = blob["THI"], blob["KNE"]
+    # Without a hip label the thigh-above-knee order used to count only with every slot of
+    # the limb search filled: both labels were left out (or swapped on other frames).
+    assert fr.assign[MARKER_INDEX["R_KNE"]] == kne
+    assert fr.assign[MARKER_INDEX["R_THI"]] == thi
+
+
+def test_a_thigh_label_below_the_knee_label_is_never_chosen() -> None:
+    fr, blob, geo, sho = _low_thigh_frame()
+    # The thigh wand blob 60 mm below the knee blob: never thigh below knee in the labels.
+    thi, kne = blob["THI"], blob["KNE"]
+    fr.qm[thi, :, 2] = fr.qm[kne, 0, 2] - 60.0
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    a_t, a_k = fr.assign[MARKER_INDEX["R_THI"]], fr.assign[MARKER_INDEX["R_KNE"]]
+    assert not (a_t >= 0 and a_k >= 0 and fr.qm[a_t, 0, 2] < fr.qm[a_k, 0, 2])
+
+
+# --- the direction of a restarted shoulder track ---------------------------------------
+
+
+def test_shoulder_move_matches_in_3d_and_ignores_the_far_shoulder() -> None:
+    prev = np.array([[1000.0, 250.0, 1400.0], [985.0, 0.0, 1402.0]])  # far, near shoulder
+    # The far shoulder is nearer along the line and in height, but 250 mm deeper.
+    assert label._shoulder_move(np.array([1012.0, 2.0, 1400.0]), prev, 140.0) == 27.0
+    assert label._shoulder_move(np.array([1012.0, 2.0, 1400.0]), None, 140.0) == 0.0
+    assert label._shoulder_move(np.array([1400.0, 2.0, 1400.0]), prev, 140.0) == 0.0
+
+
+def _restart(move: float | None, lost: bool = True) -> int:
+    """Direction after one frame in which the shoulder shows at 80 % of the walkway (its
+    far half, so "toward the far end" says -1), with a hip, thigh and knee below it.
+
+    ``lost``: a shoulder track coasted 5 frames (``max_missed``) far from it and ends in
+    this frame; else there was no track (a pass's first sight). ``move``: how far along the
+    line the blobs moved since the last frame, mm (None: no last frame).
+    """
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    a = 0.8 * ff.length
+    body = [(a, 0.0, H)] + [(a - 30.0, 60.0, h * H) for h in (0.7, 0.5, 0.35)]
+    st = label.init(label.PARAMS.resolve({}))
+    st = replace(st, trial="walk-01", frame=20, direction=1, walked=True)
+    if lost:
+        x = np.array([a - 900.0, -600.0, H, 900.0, -900.0, 0.0])  # drifted far off
+        st = replace(st, sho_x=x, sho_cov=np.eye(6) * 100.0**2, sho_missed=5)
+    if move is not None:
+        prev = np.array(body, float)
+        prev[:, 0] -= move
+        st = replace(st, prev_q=prev)
+    pos = np.repeat(to_camera(np.array(body))[:, None, :], 3, axis=1)
+    st, _ = label.label_frame(st, pos, 21, ff, geo)
+    return st.direction
+
+
+def test_a_lost_track_restarts_in_the_direction_the_shoulder_moves() -> None:
+    # The shoulder moved +35 mm since the last frame: walking toward +a although in the
+    # walkway's far half (the first-sight guess said -1 and named the wrong side).
+    assert _restart(move=35.0) == 1
+    assert _restart(move=-35.0) == -1
+    # Too little move (under dir_speed, 250 mm/s): the far-end guess stands.
+    assert _restart(move=5.0) == -1
+
+
+def test_a_track_lost_the_frame_before_restarts_in_the_direction_of_the_move() -> None:
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    a = 0.8 * ff.length
+    body = np.array([(a, 0.0, H)] + [(a - 30.0, 60.0, h * H) for h in (0.7, 0.5, 0.35)])
+    st = label.init(label.PARAMS.resolve({}))
+    prev = body.copy()
+    prev[:, 0] -= 35.0
+    st = replace(st, trial="walk-01", frame=20, sho_lost=20, prev_q=prev)
+    pos = np.repeat(to_camera(body)[:, None, :], 3, axis=1)
+    assert label.label_frame(st, pos, 21, ff, geo)[0].direction == 1
+    # Longer ago than max_missed frames: a new pass, the far-end guess.
+    st = replace(st, sho_lost=10)
+    assert label.label_frame(st, pos, 21, ff, geo)[0].direction == -1
+
+
+def test_a_pass_first_sight_keeps_the_far_end_guess() -> None:
+    # No track before: a blob entering the image moves with its visible part, so its move
+    # is not trusted.
+    assert _restart(move=35.0, lost=False) == -1
