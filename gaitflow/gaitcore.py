@@ -403,12 +403,15 @@ def _window_sums(
     return n0, st, sx, stt, stx, tc
 
 
-def local_linear(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
+def local_linear(
+    t: np.ndarray, x: np.ndarray, window_s: float, at_missing: bool = False
+) -> np.ndarray:
     """A least-squares line through the seen samples within ``window_s`` / 2 of each time,
     evaluated there (a NaN-aware, first-order Savitzky-Golay smoother on timestamps).
 
     t : (N,) s; x : (N,) with NaN = missing. Returns (N,), NaN where fewer than 3 samples or
-    a missing input sample (a gap is not filled here).
+    a missing input sample (a gap is not filled here, unless ``at_missing``: then the line
+    is evaluated at missing samples too).
     """
     t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
@@ -421,7 +424,7 @@ def local_linear(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
         slope = np.where(den > 1e-12, (n0 * stx - st * sx) / den, 0.0)
         mean_t, mean_x = st / n0, sx / n0
         out = mean_x + slope * (tc - mean_t)
-    out[(n0 < 3) | ~ok] = np.nan
+    out[(n0 < 3) | (~ok & (not at_missing))] = np.nan
     return out
 
 
@@ -521,14 +524,52 @@ def segment_outliers(a: np.ndarray, b: np.ndarray, tol: float = 0.15) -> np.ndar
     return ok & (np.abs(d - ref) > tol * ref)
 
 
-def smooth_depth(t: np.ndarray, pos: np.ndarray, window_s: float) -> np.ndarray:
+def depth_outliers(t: np.ndarray, z: np.ndarray, window_s: float, tol_mm: float) -> np.ndarray:
+    """Depths that leave their running median by more than ``tol_mm`` (a wrong layer).
+
+    In a side view a marker's depth is the body's position across the walkway: it drifts
+    slowly (a straight walk at an angle to the image plane, the trunk's sway of a few cm),
+    while a depth taken from a limb in front of the marker, or from the floor, is off by
+    tens of mm for a few frames. The median over ``window_s`` (frames within half of it on
+    each side, by index: a dropped frame widens it a little) follows the drift and ignores
+    runs shorter than half the window.
+
+    t : (F,) s; z : (F, M) depth mm, NaN = missing. Returns (F, M) bool, True = outlier.
+    ``tol_mm <= 0`` or ``window_s <= 0``: nothing is an outlier.
+    """
+    z = np.asarray(z, dtype=float)
+    out = np.zeros(z.shape, dtype=bool)
+    n = len(t)
+    if tol_mm <= 0 or window_s <= 0 or n < 3:
+        return out
+    dt = float(np.median(np.diff(t)))
+    half = max(1, round(0.5 * window_s / dt)) if dt > 0 else 1
+    pad = np.full((half, *z.shape[1:]), np.nan)
+    zp = np.concatenate([pad, z, pad])
+    win = np.lib.stride_tricks.sliding_window_view(zp, 2 * half + 1, axis=0)  # (F, M, K)
+    med = nanmedian_last(win)
+    with np.errstate(invalid="ignore"):
+        return np.abs(z - med) > tol_mm
+
+
+def smooth_depth(
+    t: np.ndarray,
+    pos: np.ndarray,
+    window_s: float,
+    outlier_mm: float = 0.0,
+    outlier_window_s: float = 1.0,
+    outlier_markers: Sequence[int] | None = None,
+) -> np.ndarray:
     """Move each marker along its viewing ray to a smoothed depth (departure, see below).
 
     In a side view the depth (Z) of a marker changes slowly (it is the body's lateral axis)
     while the ToF depth noise of Alg. 3 is large; the pixel (u, v) is precise. Each position
     p = Z (x_n, y_n, 1) is therefore rescaled to ``Z_s / Z`` with Z_s the local-linear fit of
     Z over ``window_s``: the image-plane trajectory is untouched, only the depth along the
-    ray is smoothed. ``window_s <= 0`` returns the input.
+    ray is smoothed. With ``outlier_mm`` > 0, depths more than that from their running
+    median over ``outlier_window_s`` (:func:`depth_outliers`) are left out of the fit and
+    take the fitted depth of their neighbours instead of their own (only the markers
+    ``outlier_markers``, all when None). ``window_s <= 0`` returns the input.
 
     t : (F,) s; pos : (F, M, 3) camera mm, NaN = missing. Returns (F, M, 3).
     """
@@ -536,12 +577,19 @@ def smooth_depth(t: np.ndarray, pos: np.ndarray, window_s: float) -> np.ndarray:
     if window_s <= 0 or len(t) < 3:
         return pos.copy()
     out = pos.copy()
+    bad = depth_outliers(t, pos[:, :, 2], outlier_window_s, outlier_mm)
+    if outlier_markers is not None:
+        bad[:, np.setdiff1d(np.arange(pos.shape[1]), outlier_markers)] = False
     for k in range(pos.shape[1]):
         z = pos[:, k, 2]
-        zs = local_linear(t, z, window_s)
+        zs = local_linear(t, np.where(bad[:, k], np.nan, z), window_s, at_missing=True)
+        zs[~bad[:, k] & ~np.isfinite(z)] = np.nan
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.where(np.isfinite(zs) & (z > 0), zs / z, 1.0)
+        # an outlier without inliers near enough to replace it is dropped, not kept
+        drop = bad[:, k] & ~np.isfinite(zs)
         out[:, k] *= scale[:, None]
+        out[drop, k] = np.nan
     return out
 
 

@@ -480,3 +480,40 @@ def _raw(frame: Frame, name: str, camera_id: str, last: bool) -> RawFrame:
     return RawFrame(
         header=RawFrame.make_header(camera_id, name, index, ts, last=last), ir=ir, depth=depth
     )
+
+
+def session_stage_params(
+    camera_doc: Mapping[str, Any], params: Mapping[str, Mapping[str, Any]] | None = None
+) -> dict[str, dict[str, Any]]:
+    """Stage parameters a session's ``camera.json`` sets, with ``params`` laid over them.
+
+    The stages are pure cores that read no files, so what the session folder says about its
+    camera reaches them as parameters: the depth intrinsics and distortion (``calibrate``'s
+    ``camera``; the calibration record carries them on to ``clean`` and ``locate``), the
+    marker diameter (``calibrate``, ``locate``, ``model``), the number of floor markers
+    (``calibrate``'s C) and the frame rate (``label``'s fps). Without this every stage
+    assumed a factory Kinect v2 and 25 mm markers: another unit's intrinsics then scaled
+    every length (about 1 % for 4 px of focal length).
+
+    Parameters
+    ----------
+    camera_doc : the camera.json document (already validated, e.g. by :class:`SessionReader`).
+    params : explicit per-stage overrides (``--param stage.name=value``); they win.
+
+    Returns
+    -------
+    {stage: {name: value}}, a new dict.
+    """
+    Camera.from_json(camera_doc)  # InputError naming the bad key, before any stage starts
+    out: dict[str, dict[str, Any]] = {"calibrate": {"camera": dict(camera_doc)}}
+    diameter = camera_doc.get("marker_diameter_mm")
+    if isinstance(diameter, int | float) and not isinstance(diameter, bool) and diameter > 0:
+        for stage in ("calibrate", "locate", "model"):
+            out.setdefault(stage, {})["marker_diameter_mm"] = float(diameter)
+    markers = camera_doc.get("calibration_markers")
+    if isinstance(markers, int) and not isinstance(markers, bool) and markers > 0:
+        out["calibrate"]["C"] = markers
+    out.setdefault("label", {})["fps"] = float(camera_doc["fps"])
+    for stage, values in (params or {}).items():
+        out.setdefault(stage, {}).update(values)
+    return out

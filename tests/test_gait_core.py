@@ -332,3 +332,29 @@ def test_sagittal_knee_flexion_ignores_the_lateral_coordinate() -> None:
     assert gc.knee_flexion(hip, shifted, ankle, lateral) == pytest.approx(30.0)
     plane = np.array([0.0, 1.0, 0.0, 0.0])  # floor normal y, walking along x
     assert np.allclose(np.abs(gc.lateral_axis(plane, np.array([1.0, 0.0, 0.0]))), [0, 0, 1])
+
+
+def test_depth_outliers_catch_a_wrong_layer_run_but_follow_a_drift() -> None:
+    t = np.arange(90) / 30.0
+    drift = 2500.0 + 100.0 * t  # walking at an angle to the image plane: 100 mm/s
+    z = np.stack([drift, drift + 3.0 * np.sin(7 * t)], axis=1)
+    z[40:46, 0] -= 80.0  # a limb in front for six frames
+    z[10, 1] = np.nan
+    bad = gc.depth_outliers(t, z, 1.0, 30.0)
+    assert bad[:, 0].tolist() == [40 <= i < 46 for i in range(90)]
+    assert not bad[:, 1].any()
+    assert not gc.depth_outliers(t, z, 1.0, 0.0).any()
+
+
+def test_smooth_depth_moves_a_wrong_layer_back_along_its_ray() -> None:
+    t = np.arange(60) / 30.0
+    ray = np.array([0.2, -0.1, 1.0])
+    z = np.full(60, 2600.0)
+    z[20:24] -= 70.0
+    pos = (z[:, None] * ray)[:, None, :]
+    out = gc.smooth_depth(t, pos, 0.3, 30.0, 1.0)
+    np.testing.assert_allclose(out[:, 0, 2], 2600.0, atol=1e-6)
+    # on the ray: the image position (x/z, y/z) is kept
+    np.testing.assert_allclose(out[:, 0, :2] / out[:, 0, 2:], np.tile(ray[:2], (60, 1)))
+    kept = gc.smooth_depth(t, pos, 0.3, 30.0, 1.0, outlier_markers=[])
+    assert kept[21, 0, 2] < 2590.0  # excluded markers keep their (smoothed) wrong depth

@@ -38,6 +38,7 @@ import numpy as np
 
 from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+from gaitflow.sim.variants import VARIANTS
 
 MATCH_S = 0.15
 LABEL_TOL_PX = 5.0
@@ -346,18 +347,22 @@ def run_pipeline_level(
     params: Mapping[str, Any] | None = None,
     jobs: int = 2,
     stage_params: Mapping[str, Mapping[str, Any]] | None = None,
+    variant: str = "base",
 ) -> tuple[dict[str, Any], dict[str, Any], np.ndarray, np.ndarray, np.ndarray, float]:
     """Simulate, run the whole graph inline; return (doc, truth, t, knee, pig, label_pct).
 
     ``stage_params`` : per stage, parameter overrides (``--param stage.name=value``).
+    ``variant`` : the simulated set-up (:mod:`gaitflow.sim.variants`).
     """
     from gaitflow.commands.demo import rendered_frames
-    from gaitflow.sim import SimConfig, simulate_session
+    from gaitflow.session import session_stage_params
+    from gaitflow.sim import simulate_session
+    from gaitflow.sim.variants import sim_config
     from gaitflow.stages.graph import load
     from gaitflow.stages.inline import InlinePipeline
 
     # quick protocol: short calibration and static parts; the walk is the full trial
-    ses = simulate_session(trial, seed, SimConfig.quick())
+    ses = simulate_session(trial, seed, sim_config(variant))
     name = ses.walks()[0]
     graph = load()
     summaries: list[Any] = []
@@ -370,10 +375,11 @@ def run_pipeline_level(
         elif stream == "labelled" and msg.header.trial == name:
             labelled[msg.header.frame] = msg
 
-    overrides = {k: dict(v) for k, v in (stage_params or {}).items()}
+    # the pipeline knows the simulated camera as analyze knows a session's: from camera.json
+    overrides = session_stage_params(ses.camera_json, stage_params)
     overrides["gait"] = {**overrides.get("gait", {}), **dict(params or {})}
     pipe = InlinePipeline(graph, params=overrides, sink=sink)
-    _, frames = rendered_frames(trial, seed, True, jobs, with_truth=True)
+    _, frames = rendered_frames(trial, seed, True, jobs, with_truth=True, variant=variant, ses=ses)
     for raw, truth in frames:
         if raw.header.trial == name:
             truths[raw.header.frame] = truth  # kept aside for scoring; never pushed
@@ -461,7 +467,7 @@ def run(args: argparse.Namespace) -> int:
             )
         else:
             doc, truth, t, knee, pig, label = run_pipeline_level(
-                trial, args.seed, params, args.jobs, _stage_params(args.param)
+                trial, args.seed, params, args.jobs, _stage_params(args.param), args.variant
             )
         sc = score_trial(doc, truth, t, knee, pig)
         sc["labelling_pct"] = label
@@ -599,6 +605,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--level", choices=("pipeline", "markers"), default="pipeline")
     p.add_argument("--noise-mm", type=float, default=3.0, help="markers level: noise sigma")
     p.add_argument("--jobs", type=int, default=2, help="pipeline level: render processes")
+    p.add_argument(
+        "--variant",
+        default="base",
+        choices=list(VARIANTS),
+        help="pipeline level: simulated set-up (gaitflow.sim.variants): "
+        + "; ".join(f"{k}: {v[1]}" for k, v in VARIANTS.items()),
+    )
     p.add_argument("--xi", type=float, default=None, help="override Alg. 6 xi = phi")
     p.add_argument("--refine", choices=("velocity", "none"), default=None)
     p.add_argument(

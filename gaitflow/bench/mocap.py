@@ -25,7 +25,9 @@ Scores (per visible truth marker and frame; "visible" = in view and not occluded
   Single runs; the machine yardstick printed below scales them.
 
 Variants (``--variants``) change the simulator, never the stage parameters: ``base``,
-``d20`` / ``d30`` (20 / 30 mm markers), ``near`` / ``far`` (walking line at 2.0 / 3.5 m).
+``d20`` / ``d30`` (20 / 30 mm markers), ``near`` / ``far`` (walking line at 2.0 / 3.5 m),
+``high`` / ``low`` (camera height and tilt), ``unit2`` (another sensor's intrinsics),
+``noisy``, ``slow`` (:mod:`gaitflow.sim.variants`).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import numpy as np
 from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.errors import ConfigError
 from gaitflow.markers import CLUSTER_MODES, MARKER_NAMES, cluster_mode
+from gaitflow.sim.variants import VARIANTS, sim_config
 
 BETAS = (0.5, 1.5, 2.5)
 PAPER = {
@@ -51,13 +54,6 @@ PAPER = {
     "recall_previous": {0.5: 88.12, 1.5: 90.84, 2.5: 92.10, "ms": 117.53},
 }
 GOALS = {"detected": 99.5, "recall@0.5": 97.0, "err_median_mm": 5.0, "ms_detect_locate_p99": 2.0}
-VARIANTS = {
-    "base": {},
-    "d20": {"marker_diameter_mm": 20.0},
-    "d30": {"marker_diameter_mm": 30.0},
-    "near": {"walk_distance_mm": 2000.0},
-    "far": {"walk_distance_mm": 3500.0},
-}
 MODE_OF = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
 
 
@@ -180,9 +176,9 @@ def render_frames(trial: str, seed: int, variant: str, frames: int, recording: s
 
     Returns (raw, truth, mid-exposure truth pixels, session calibration record) per frame.
     """
-    from gaitflow.sim import SimConfig, simulate_session
+    from gaitflow.sim import simulate_session
 
-    cfg = SimConfig.quick(**VARIANTS[variant])
+    cfg = sim_config(variant)
     ses = simulate_session(trial, seed, cfg)
     if recording not in ses.recordings:
         raise ConfigError(f"bench mocap: no recording {recording!r} in trial {trial!r}")

@@ -76,11 +76,12 @@ def run_inline_session(
 
     Returns trial -> the final results document of each walking trial seen.
     """
-    from gaitflow.session import SessionReader, iter_raw_frames
+    from gaitflow.session import SessionReader, iter_raw_frames, session_stage_params
     from gaitflow.stages.graph import load
     from gaitflow.stages.inline import InlinePipeline
 
     reader = SessionReader(root)
+    params = session_stage_params(reader.camera_doc, params)
     summaries: dict[str, dict[str, Any]] = {}
 
     def sink(stream: str, msg: Any) -> None:
@@ -119,7 +120,7 @@ def run_bus_session(
     from gaitflow.bus.keys import stream_selector
     from gaitflow.bus.router import client_config, local_endpoint
     from gaitflow.schemas import TrialSummary, decode
-    from gaitflow.session import SessionReader
+    from gaitflow.session import SessionReader, session_stage_params
     from gaitflow.stages.graph import load
     from gaitflow.stages.launcher import Launcher
 
@@ -128,7 +129,7 @@ def run_bus_session(
     total = sum(len(reader.rows(n)) for n in walks)
     graph = load()
     endpoint = local_endpoint()
-    stage_params = {k: dict(v) for k, v in (params or {}).items()}
+    stage_params = session_stage_params(reader.camera_doc, params)
     stage_params.setdefault("grab", {}).update({"source": "session", "path": str(root.resolve())})
     summaries: dict[str, dict[str, Any]] = {}
     lock = threading.Lock()

@@ -30,11 +30,11 @@ DEFAULT_TRIAL = "btk_PiG_Motion-FlatFoot-Full"
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(trial: str, seed: int, quick: bool) -> None:
-    from gaitflow.sim import SimConfig, simulate_session
+def _init_worker(trial: str, seed: int, quick: bool, variant: str = "base") -> None:
+    from gaitflow.sim import simulate_session
+    from gaitflow.sim.variants import sim_config
 
-    cfg = SimConfig.quick() if quick else SimConfig()
-    _WORKER["ses"] = simulate_session(trial, seed, cfg)
+    _WORKER["ses"] = simulate_session(trial, seed, sim_config(variant, quick))
 
 
 def _render(job: tuple[str, int, bool]) -> Any:
@@ -49,18 +49,27 @@ def _render_with_truth(job: tuple[str, int, bool]) -> Any:
 
 
 def rendered_frames(
-    trial: str, seed: int, quick: bool, jobs: int, with_truth: bool = False
+    trial: str,
+    seed: int,
+    quick: bool,
+    jobs: int,
+    with_truth: bool = False,
+    variant: str = "base",
+    ses: Any = None,
 ) -> tuple[list[tuple[str, int]], Iterator[Any]]:
     """(recording, frame count) in protocol order, and the RawFrames of all of them in order.
 
     With ``jobs > 1`` frames are rendered by that many worker processes (the simulator is
     deterministic per seed, recording and frame, so the frames are identical). With
     ``with_truth`` the items are ``(RawFrame, GroundTruth)`` pairs (benchmarks only).
+    ``variant`` names a simulated set-up of :mod:`gaitflow.sim.variants`; ``ses`` is that
+    session already simulated (not built again here).
     """
-    from gaitflow.sim import SimConfig, simulate_session
+    from gaitflow.sim import simulate_session
+    from gaitflow.sim.variants import sim_config
 
-    cfg = SimConfig.quick() if quick else SimConfig()
-    ses = simulate_session(trial, seed, cfg)
+    if ses is None:
+        ses = simulate_session(trial, seed, sim_config(variant, quick))
     plan = [(name, len(rec)) for name, rec in ses.recordings.items()]
     work = [(name, k, k == n - 1) for name, n in plan for k in range(n)]
 
@@ -71,7 +80,7 @@ def rendered_frames(
 
     def pooled() -> Iterator[Any]:
         with ProcessPoolExecutor(
-            jobs, initializer=_init_worker, initargs=(trial, seed, quick)
+            jobs, initializer=_init_worker, initargs=(trial, seed, quick, variant)
         ) as ex:
             yield from ex.map(_render_with_truth if with_truth else _render, work, chunksize=4)
 
@@ -88,10 +97,10 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if args.bus:
         from gaitflow.commands.simulate import write_session
-        from gaitflow.sim import SimConfig, simulate_session
+        from gaitflow.sim import simulate_session
+        from gaitflow.sim.variants import sim_config
 
-        cfg = SimConfig.quick() if not args.full else SimConfig()
-        ses = simulate_session(args.trial, args.seed, cfg)
+        ses = simulate_session(args.trial, args.seed, sim_config("base", not args.full))
         session_dir = out / "session"
         print(f"gaitflow demo: simulating {args.trial} into {session_dir}")
         write_session(ses, session_dir, None)
@@ -106,13 +115,18 @@ def run(args: argparse.Namespace) -> int:
             if stream == "summary" and msg.results.get("scope") == "trial":
                 docs[msg.header.trial] = msg.results
 
-        plan, frames = rendered_frames(args.trial, args.seed, not args.full, args.jobs)
+        from gaitflow.session import session_stage_params
+        from gaitflow.sim import simulate_session
+        from gaitflow.sim.variants import sim_config
+
+        ses = simulate_session(args.trial, args.seed, sim_config("base", not args.full))
+        plan, frames = rendered_frames(args.trial, args.seed, not args.full, args.jobs, ses=ses)
         total = sum(n for _, n in plan)
         print(
             f"gaitflow demo: simulating {args.trial} (seed {args.seed}): "
             + ", ".join(f"{name} {n} frames" for name, n in plan)
         )
-        pipe = InlinePipeline(load(), sink=sink)
+        pipe = InlinePipeline(load(), params=session_stage_params(ses.camera_json), sink=sink)
         with progress(total=total, desc="demo", unit="frame", quiet=args.quiet) as bar:
             for raw in frames:
                 pipe.push(raw)

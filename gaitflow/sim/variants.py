@@ -1,0 +1,72 @@
+"""Named simulator variants: the plausible set-ups a clinic's recordings differ by.
+
+The pipeline is judged on real trials recorded elsewhere, so the benchmarks run it on
+simulated sessions that change the *scene*, never a stage parameter: marker size (20-30 mm),
+camera distance, height and tilt, another camera unit's intrinsics, a noisier sensor, and a
+slow walker. ``gaitflow bench mocap --variants`` and ``gaitflow bench gait --variant`` take
+these names; :func:`sim_config` builds the quick-protocol configuration of one.
+
+Units as in :class:`gaitflow.sim.config.SimConfig`: mm, degrees.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from gaitflow.camera import Camera
+from gaitflow.errors import ConfigError
+
+# Another Kinect v2 unit: the factory intrinsics of these sensors differ by a few px in focal
+# length and principal point and by a few hundredths in the radial terms (published
+# per-device calibrations, e.g. Lachat et al. 2015, Pagliari and Pinto 2015).
+OTHER_UNIT = Camera(fx=361.2, fy=361.0, cx=259.3, cy=209.6, k1=0.0841, k2=-0.249, k3=0.0812)
+
+# A Kinect-v2-class sensor of another make: Azure Kinect's depth camera in its narrow
+# field-of-view mode (640 x 576 px, about 75 x 65 deg), typical factory intrinsics.
+AZURE_NFOV = Camera(
+    width=640,
+    height=576,
+    fx=504.2,
+    fy=504.3,
+    cx=322.1,
+    cy=330.6,
+    k1=0.12,
+    k2=-0.06,
+    k3=0.0,
+    model="azure-kinect-nfov",
+)
+
+VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
+    "base": ({}, "the defaults: 25 mm markers, walking line 2.75 m away, camera 0.8 m high"),
+    "d20": ({"marker_diameter_mm": 20.0}, "20 mm markers"),
+    "d30": ({"marker_diameter_mm": 30.0}, "30 mm markers"),
+    "near": ({"walk_distance_mm": 2000.0}, "walking line 2.0 m from the camera"),
+    "far": ({"walk_distance_mm": 3500.0}, "walking line 3.5 m from the camera"),
+    "high": (
+        {"camera_height_mm": 1200.0, "tilt_deg": 8.0},
+        "camera 1.2 m high, tilted 8 deg down",
+    ),
+    "low": ({"camera_height_mm": 500.0, "tilt_deg": -3.0}, "camera 0.5 m high, tilted 3 deg up"),
+    "unit2": ({"camera": OTHER_UNIT}, "another sensor unit's intrinsics and distortion"),
+    "k4a": ({"camera": AZURE_NFOV}, "another sensor: 640 x 576 px, narrower field of view"),
+    "noisy": (
+        {"depth_noise_scale": 2.0, "ir_read_noise": 36.0, "flying_prob": 0.8},
+        "twice the depth noise, three times the IR read noise, more flying pixels",
+    ),
+    "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
+}
+
+
+def variant_changes(name: str) -> dict[str, Any]:
+    """The SimConfig changes of variant ``name``; ConfigError naming it if unknown."""
+    if name not in VARIANTS:
+        raise ConfigError(f"simulator variant {name!r} is unknown (known: {list(VARIANTS)})")
+    return dict(VARIANTS[name][0])
+
+
+def sim_config(name: str = "base", quick: bool = True) -> Any:
+    """The SimConfig of variant ``name`` (the quick protocol unless ``quick`` is false)."""
+    from gaitflow.sim import SimConfig
+
+    changes = variant_changes(name)
+    return SimConfig.quick(**changes) if quick else SimConfig(**changes)
