@@ -524,30 +524,43 @@ def segment_outliers(a: np.ndarray, b: np.ndarray, tol: float = 0.15) -> np.ndar
     return ok & (np.abs(d - ref) > tol * ref)
 
 
+def running_median(t: np.ndarray, z: np.ndarray, window_s: float) -> np.ndarray:
+    """Median of the seen values within ``window_s`` / 2 of each sample, by index (a dropped
+    frame widens the window a little). z : (F, M), NaN = missing. Returns (F, M), NaN where
+    fewer than a quarter of the window is seen on either side of the sample (at the ends of
+    the data, or of a marker's view, a one-sided median would follow whatever came last)."""
+    z = np.asarray(z, dtype=float)
+    n = len(t)
+    if n < 2:
+        return np.full(z.shape, np.nan)
+    dt = float(np.median(np.diff(t)))
+    half = max(2, round(0.5 * window_s / dt)) if dt > 0 else 2
+    pad = np.full((half, *z.shape[1:]), np.nan)
+    zp = np.concatenate([pad, z, pad])
+    win = np.lib.stride_tricks.sliding_window_view(zp, 2 * half + 1, axis=0)  # (F, M, K)
+    seen = ~np.isnan(win)
+    need = half // 2
+    both = (seen[..., :half].sum(axis=-1) >= need) & (seen[..., half + 1 :].sum(axis=-1) >= need)
+    return np.where(both, nanmedian_last(win), np.nan)
+
+
 def depth_outliers(t: np.ndarray, z: np.ndarray, window_s: float, tol_mm: float) -> np.ndarray:
     """Depths that leave their running median by more than ``tol_mm`` (a wrong layer).
 
     In a side view a marker's depth is the body's position across the walkway: it drifts
     slowly (a straight walk at an angle to the image plane, the trunk's sway of a few cm),
     while a depth taken from a limb in front of the marker, or from the floor, is off by
-    tens of mm for a few frames. The median over ``window_s`` (frames within half of it on
-    each side, by index: a dropped frame widens it a little) follows the drift and ignores
-    runs shorter than half the window.
+    tens of mm for a few frames. The median over ``window_s`` (:func:`running_median`)
+    follows the drift and ignores runs shorter than half the window; where it is one-sided
+    (the ends of a marker's view) nothing is judged.
 
     t : (F,) s; z : (F, M) depth mm, NaN = missing. Returns (F, M) bool, True = outlier.
     ``tol_mm <= 0`` or ``window_s <= 0``: nothing is an outlier.
     """
     z = np.asarray(z, dtype=float)
-    out = np.zeros(z.shape, dtype=bool)
-    n = len(t)
-    if tol_mm <= 0 or window_s <= 0 or n < 3:
-        return out
-    dt = float(np.median(np.diff(t)))
-    half = max(1, round(0.5 * window_s / dt)) if dt > 0 else 1
-    pad = np.full((half, *z.shape[1:]), np.nan)
-    zp = np.concatenate([pad, z, pad])
-    win = np.lib.stride_tricks.sliding_window_view(zp, 2 * half + 1, axis=0)  # (F, M, K)
-    med = nanmedian_last(win)
+    if tol_mm <= 0 or window_s <= 0 or len(t) < 3:
+        return np.zeros(z.shape, dtype=bool)
+    med = running_median(t, z, window_s)
     with np.errstate(invalid="ignore"):
         return np.abs(z - med) > tol_mm
 
@@ -568,7 +581,8 @@ def smooth_depth(
     Z over ``window_s``: the image-plane trajectory is untouched, only the depth along the
     ray is smoothed. With ``outlier_mm`` > 0, depths more than that from their running
     median over ``outlier_window_s`` (:func:`depth_outliers`) are left out of the fit and
-    take the fitted depth of their neighbours instead of their own (only the markers
+    take the fitted depth of their neighbours instead of their own, keeping their pixel
+    (the precise part), or are dropped where no neighbour is near enough (only the markers
     ``outlier_markers``, all when None). ``window_s <= 0`` returns the input.
 
     t : (F,) s; pos : (F, M, 3) camera mm, NaN = missing. Returns (F, M, 3).
@@ -586,10 +600,11 @@ def smooth_depth(
         zs[~bad[:, k] & ~np.isfinite(z)] = np.nan
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.where(np.isfinite(zs) & (z > 0), zs / z, 1.0)
-        # an outlier without inliers near enough to replace it is dropped, not kept
-        drop = bad[:, k] & ~np.isfinite(zs)
         out[:, k] *= scale[:, None]
-        out[drop, k] = np.nan
+        # in the middle of a longer wrong run no seen depth is near enough: the sample is
+        # dropped for the gap filler (the running median in its place was worse: knee
+        # RMSE 1.97 / 4.64 deg against 1.27 / 1.78 on the bundled walks)
+        out[bad[:, k] & ~np.isfinite(zs), k] = np.nan
     return out
 
 

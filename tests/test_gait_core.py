@@ -343,6 +343,9 @@ def test_depth_outliers_catch_a_wrong_layer_run_but_follow_a_drift() -> None:
     bad = gc.depth_outliers(t, z, 1.0, 30.0)
     assert bad[:, 0].tolist() == [40 <= i < 46 for i in range(90)]
     assert not bad[:, 1].any()
+    med = gc.running_median(t, z, 1.0)
+    assert abs(med[43, 0] - drift[43]) < 25.0  # six low samples pull it, not past the bound
+    assert np.isnan(med[:7, 0]).all()  # one-sided at the start: no judgement
     assert not gc.depth_outliers(t, z, 1.0, 0.0).any()
 
 
@@ -351,10 +354,18 @@ def test_smooth_depth_moves_a_wrong_layer_back_along_its_ray() -> None:
     ray = np.array([0.2, -0.1, 1.0])
     z = np.full(60, 2600.0)
     z[20:24] -= 70.0
+    z[32:42] -= 70.0  # a longer run: its middle has no seen depth within the 0.3 s fit
+    z[57:] += 50.0  # the data's last frames: a one-sided median is no judge
     pos = (z[:, None] * ray)[:, None, :]
     out = gc.smooth_depth(t, pos, 0.3, 30.0, 1.0)
-    np.testing.assert_allclose(out[:, 0, 2], 2600.0, atol=1e-6)
+    lone = np.isnan(out[:, 0, 2])  # no seen depth within the fit: dropped, for the gap filler
+    assert lone[35:39].all() and not lone[:30].any() and not lone[45:].any()
+    np.testing.assert_allclose(out[:50, 0, 2][~lone[:50]], 2600.0, atol=1e-6)
+    assert (out[57:, 0, 2] > 2610.0).all()
     # on the ray: the image position (x/z, y/z) is kept
-    np.testing.assert_allclose(out[:, 0, :2] / out[:, 0, 2:], np.tile(ray[:2], (60, 1)))
+    seen = ~lone
+    np.testing.assert_allclose(
+        out[seen, 0, :2] / out[seen, 0, 2:], np.tile(ray[:2], (seen.sum(), 1))
+    )
     kept = gc.smooth_depth(t, pos, 0.3, 30.0, 1.0, outlier_markers=[])
     assert kept[21, 0, 2] < 2590.0  # excluded markers keep their (smoothed) wrong depth
