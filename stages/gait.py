@@ -109,7 +109,7 @@ PARAMS = ParamSet(
         Param(
             "depth_outlier_mm",
             float,
-            30.0,
+            40.0,
             "mm",
             "a depth this far from the marker's running median is a wrong layer: it takes "
             "its neighbours' smoothed depth (heel, toe and ankle excepted; 0 = off)",
