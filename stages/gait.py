@@ -12,6 +12,10 @@ trial, or ``finish``).
 Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
 
 1. times from the capture clock (s from the trial's first frame, frame drops stay gaps);
+   a heel or toe sample far from its neighbours' median is dropped (``foot_outlier_mm``),
+   and each marker's depth is smoothed along its viewing ray (``depth_smooth_s``), a depth
+   far from its running median taken as a wrong layer (``depth_outlier_mm``; not for heel,
+   toe and ankle);
 2. every marker gap-filled with cubic Bezier segments (at most ``max_gap_s``), then
    resampled to ``resample_hz`` with Catmull-Rom Bezier segments on the timestamps;
 3. heel and toe heights above the calibration's floor plane; positions along the walking
