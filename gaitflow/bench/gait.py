@@ -379,7 +379,7 @@ def run_pipeline_level(
     overrides = session_stage_params(ses.camera_json, stage_params)
     overrides["gait"] = {**overrides.get("gait", {}), **dict(params or {})}
     pipe = InlinePipeline(graph, params=overrides, sink=sink)
-    _, frames = rendered_frames(trial, seed, True, jobs, with_truth=True, variant=variant, ses=ses)
+    _, frames = rendered_frames(trial, seed, True, jobs, with_truth=True, ses=ses)
     for raw, truth in frames:
         if raw.header.trial == name:
             truths[raw.header.frame] = truth  # kept aside for scoring; never pushed

@@ -30,11 +30,10 @@ DEFAULT_TRIAL = "btk_PiG_Motion-FlatFoot-Full"
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(trial: str, seed: int, quick: bool, variant: str = "base") -> None:
+def _init_worker(trial: str, seed: int, config: Any) -> None:
     from gaitflow.sim import simulate_session
-    from gaitflow.sim.variants import sim_config
 
-    _WORKER["ses"] = simulate_session(trial, seed, sim_config(variant, quick))
+    _WORKER["ses"] = simulate_session(trial, seed, config)
 
 
 def _render(job: tuple[str, int, bool]) -> Any:
@@ -54,7 +53,6 @@ def rendered_frames(
     quick: bool,
     jobs: int,
     with_truth: bool = False,
-    variant: str = "base",
     ses: Any = None,
 ) -> tuple[list[tuple[str, int]], Iterator[Any]]:
     """(recording, frame count) in protocol order, and the RawFrames of all of them in order.
@@ -62,14 +60,15 @@ def rendered_frames(
     With ``jobs > 1`` frames are rendered by that many worker processes (the simulator is
     deterministic per seed, recording and frame, so the frames are identical). With
     ``with_truth`` the items are ``(RawFrame, GroundTruth)`` pairs (benchmarks only).
-    ``variant`` names a simulated set-up of :mod:`gaitflow.sim.variants`; ``ses`` is that
-    session already simulated (not built again here).
+    ``ses`` is the session already simulated (any configuration, e.g. a variant of
+    :mod:`gaitflow.sim.variants`; not built again here), else it is built from ``quick``;
+    the workers build theirs from its configuration, so both render the same recordings.
     """
     from gaitflow.sim import simulate_session
     from gaitflow.sim.variants import sim_config
 
     if ses is None:
-        ses = simulate_session(trial, seed, sim_config(variant, quick))
+        ses = simulate_session(trial, seed, sim_config("base", quick))
     plan = [(name, len(rec)) for name, rec in ses.recordings.items()]
     work = [(name, k, k == n - 1) for name, n in plan for k in range(n)]
 
@@ -80,7 +79,7 @@ def rendered_frames(
 
     def pooled() -> Iterator[Any]:
         with ProcessPoolExecutor(
-            jobs, initializer=_init_worker, initargs=(trial, seed, quick, variant)
+            jobs, initializer=_init_worker, initargs=(trial, seed, ses.config)
         ) as ex:
             yield from ex.map(_render_with_truth if with_truth else _render, work, chunksize=4)
 
@@ -95,12 +94,13 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    from gaitflow.sim import simulate_session
+    from gaitflow.sim.variants import sim_config
+
+    ses = simulate_session(args.trial, args.seed, sim_config("base", not args.full))
     if args.bus:
         from gaitflow.commands.simulate import write_session
-        from gaitflow.sim import simulate_session
-        from gaitflow.sim.variants import sim_config
 
-        ses = simulate_session(args.trial, args.seed, sim_config("base", not args.full))
         session_dir = out / "session"
         print(f"gaitflow demo: simulating {args.trial} into {session_dir}")
         write_session(ses, session_dir, None)
@@ -116,10 +116,7 @@ def run(args: argparse.Namespace) -> int:
                 docs[msg.header.trial] = msg.results
 
         from gaitflow.session import session_stage_params
-        from gaitflow.sim import simulate_session
-        from gaitflow.sim.variants import sim_config
 
-        ses = simulate_session(args.trial, args.seed, sim_config("base", not args.full))
         plan, frames = rendered_frames(args.trial, args.seed, not args.full, args.jobs, ses=ses)
         total = sum(n for _, n in plan)
         print(
