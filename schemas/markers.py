@@ -31,3 +31,9 @@ class Markers3D(Message):
         "float64", (None, 3, 3), "[blob, mode, xyz] camera-space mm under each cluster mode"
     )
     threshold: float = value_field(float, 0.0, "e_d carried from detect")
+    surface_offset_mm: float = value_field(
+        float,
+        0.0,
+        "how far locate moved each position toward the camera along its viewing ray, from"
+        " the surface the marker sits on to the sphere's centre, mm (0 = surface points)",
+    )

@@ -145,6 +145,14 @@ PARAMS = ParamSet(
             "publish the near ASI and PSI (their depth is poor on the pelvis silhouette)",
         ),
         Param(
+            "heel_side_on",
+            bool,
+            True,
+            "",
+            "publish the heel markers at the surface point, without locate's offset toward"
+            " the camera: a heel marker is seen side-on, with no surface behind it",
+        ),
+        Param(
             "turn_speed",
             float,
             120.0,
@@ -174,6 +182,7 @@ PARAMS = ParamSet(
 )
 
 NEAR_FOOT = ("TIB", "ANK", "HEE", "TOE")
+HEELS = np.isin(np.arange(20), [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]])
 # Segments whose measured length is checked against the stature-scaled template, and the
 # relative deviation beyond which the template's length is used instead.
 SEGMENTS = (("HIP", "KNE"), ("KNE", "ANK"), ("ANK", "HEE"), ("ANK", "TOE"), ("HEE", "TOE"))
@@ -1417,8 +1426,12 @@ def _output(
     direction: int,
     near: str,
     prev: tuple[np.ndarray, np.ndarray] | None = None,
+    side_on: np.ndarray | None = None,
 ) -> tuple[LabelledMarkers, tuple[np.ndarray, np.ndarray]]:
     """The labelled frame, and the (20,) depth and frame of each marker's last position.
+
+    ``side_on`` (20,) bool: markers published at their surface point (locate's
+    ``surface_offset_mm`` undone along the viewing ray); see the ``heel_side_on`` parameter.
 
     ``prev`` (the previous call's second output, or None) enables the leg layer choice: a
     knee, tibia or ankle marker whose own-mode layer is the nearest surface in its window
@@ -1448,6 +1461,13 @@ def _output(
     # The label's own mode found no layer: normal mode.
     xyz = np.where(np.isfinite(xyz).all(axis=1)[:, None], xyz, pos[b, 0])
     position[ii] = xyz
+    if side_on is not None and mk.surface_offset_mm > 0:
+        # Locate put every marker one radius (plus base) in front of the surface it sits
+        # on, which is right for a marker facing the camera. A heel marker sits on the back
+        # of the heel and is seen side-on: the surface beside it is at its centre's depth.
+        k = np.flatnonzero(side_on & (assign >= 0))
+        dist = np.linalg.norm(position[k], axis=1)
+        position[k] *= (1.0 + mk.surface_offset_mm / dist)[:, None]
     pixel[ii] = cen[b]
     zs = np.full(20, np.nan) if prev is None else prev[0].copy()
     seen = np.full(20, -(10**9)) if prev is None else prev[1].copy()
@@ -1503,7 +1523,8 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
         near = ""
     direction = st.direction if st.sho_x is not None else 0
     track = p["leg_layer"] == "track"
-    out, leg_depth = _output(mk, assign, direction, near, st.leg_depth if track else None)
+    side_on = HEELS if p["heel_side_on"] else None
+    out, leg_depth = _output(mk, assign, direction, near, st.leg_depth if track else None, side_on)
     return replace(st, leg_depth=leg_depth if track else None), [out]
 
 

@@ -871,8 +871,8 @@ def locate_all(
     xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
     if diameter is None:
         diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
-    offset = bool(params["surface_offset"] and diameter > 0)
-    back = 0.5 * diameter + params["marker_base_mm"]
+    back = surface_offset(params, diameter)
+    offset = back > 0
     if params["jit"]:
         from gaitflow.stages import alg_kernels
 
@@ -887,6 +887,17 @@ def locate_all(
             with np.errstate(invalid="ignore", divide="ignore"):
                 pos *= np.clip(1.0 - back / norm, 0.0, None)[:, :, None]
     return pos[:, :, 2].copy(), pos
+
+
+def surface_offset(params: Mapping[str, Any], diameter: float) -> float:
+    """How far a position moves toward the camera from the surface to the marker centre.
+
+    One radius plus the base height when ``surface_offset`` is on and the diameter is known,
+    else 0 mm (see "Marker centre" in the module docstring).
+    """
+    if not (params["surface_offset"] and diameter > 0):
+        return 0.0
+    return 0.5 * float(diameter) + float(params["marker_base_mm"])
 
 
 @dataclass(frozen=True)
@@ -955,6 +966,7 @@ def step(state: LocateState, inputs: Inputs) -> tuple[LocateState, list]:
         depth=z,
         position=pos,
         threshold=float(blobs.threshold),
+        surface_offset_mm=surface_offset(p, state.diameter),
     )
     return state, [out]
 

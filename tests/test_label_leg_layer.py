@@ -1,8 +1,12 @@
-"""Label output: a knee's depth layer chosen by continuity when something passes in front."""
+"""Label output: a knee's depth layer chosen by continuity when something passes in front;
+the heel published at its surface point."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 from gaitflow.schemas import Markers3D
 from gaitflow.stages import label
 
@@ -10,6 +14,7 @@ from gaitflow.markers import MARKER_INDEX
 
 KNE = MARKER_INDEX["L_KNE"]
 HIP = MARKER_INDEX["L_HIP"]
+HEE = MARKER_INDEX["L_HEE"]
 
 
 def _markers(frame: int, knee_normal_z: float, knee_bottom_z: float) -> Markers3D:
@@ -56,3 +61,22 @@ def test_without_a_recent_depth_the_own_mode_stands() -> None:
     near = (np.full(20, 2610.0), np.zeros(20, int))
     out, _ = label._output(_markers(1, 2600.0, 2612.0), _assign(), 1, "L", near)
     assert out.position[KNE, 2] == 2600.0
+
+
+def test_the_heel_is_published_at_its_surface_point() -> None:
+    mk = dataclasses.replace(_markers(0, 2610.0, 2610.0), surface_offset_mm=14.5)
+    a = np.full(20, -1)
+    a[HEE], a[KNE] = 0, 1
+    out, _ = label._output(mk, a, 1, "L", None, label.HEELS)
+    before = mk.position[0, 2]
+    # moved back along its own viewing ray by locate's offset; the knee is left alone
+    moved = out.position[HEE] - before
+    assert np.linalg.norm(moved) == pytest.approx(14.5)
+    np.testing.assert_allclose(np.cross(moved, before), 0.0, atol=1e-6)
+    assert np.linalg.norm(out.position[HEE]) > np.linalg.norm(before)
+    np.testing.assert_array_equal(out.position[KNE], mk.position[1, 0])
+    # off (no mask), or points locate left at the surface: as located
+    out, _ = label._output(mk, a, 1, "L", None, None)
+    np.testing.assert_array_equal(out.position[HEE], before)
+    out, _ = label._output(_markers(0, 2610.0, 2610.0), a, 1, "L", None, label.HEELS)
+    np.testing.assert_array_equal(out.position[HEE], before)

@@ -166,6 +166,10 @@ def test_marker_diameter_from_session_camera_json_unless_set() -> None:
     )
     shrink2 = np.linalg.norm(raw_pt.position[0, 0]) - np.linalg.norm(out2.position[0, 0])
     assert shrink2 == pytest.approx(10.0 + 2.0)
+    # The message says how far it moved the points, so that label can undo it per site.
+    assert raw_pt.surface_offset_mm == 0.0
+    assert out.surface_offset_mm == pytest.approx(shrink)
+    assert out2.surface_offset_mm == pytest.approx(shrink2)
     # A flat mapping of Camera fields is accepted as the intrinsics override too.
     st = locate.init(params(camera={"fx": 500.0, "fy": 500.0}))
     assert st.camera.fx == 500.0

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from gaitflow.errors import InputError
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 from gaitflow.sim.body import (
     SEGMENT_INDEX,
@@ -14,7 +16,9 @@ from gaitflow.sim.body import (
     derive_markers,
     load_trial,
     pelvis_frame,
+    trials_dir,
 )
+from gaitflow.sim.walk import _period
 
 
 def test_harrington_hip_joint_centre() -> None:
@@ -78,3 +82,31 @@ def test_markers_sit_outside_their_segment() -> None:
     assert 12.5 <= hee.min() < 60.0
     assert body.markers[..., 2].min() >= 12.5
     assert len(MARKER_NAMES) == 20
+
+
+def _heels(z: np.ndarray, t: np.ndarray) -> SimpleNamespace:
+    m = np.zeros((len(t), 20, 3))
+    m[:, MARKER_INDEX["L_HEE"], 2] = z
+    return SimpleNamespace(markers=m, t=t)
+
+
+def test_gait_period_from_the_heels_and_a_labelled_step() -> None:
+    t = np.arange(0.0, 2.5, 0.01)
+    cycle = np.sin(2 * np.pi * t / 1.08)
+    assert _period(_heels(cycle, t)) == pytest.approx(1.08, abs=0.011)
+    assert _period(_heels(cycle, t), around=1.0) == pytest.approx(1.08, abs=0.011)
+    # A short trial whose heel signal is dominated by something else: over the whole
+    # range the autocorrelation rises to the window's edge (1.8 s, no peak); around twice
+    # a labelled step's time the edge is no peak either, and that time is the period.
+    bump = 0.2 * cycle + 2.0 * np.exp(-(((t - 1.25) / 0.3) ** 2))
+    assert _period(_heels(bump, t)) == pytest.approx(1.8, abs=0.011)
+    assert _period(_heels(bump, t), around=1.08) == pytest.approx(1.08)
+
+
+def test_a_trial_given_by_path_is_the_same_trial() -> None:
+    by_path = load_trial(str(trials_dir() / "btk_PiG_Motion3_FF.npz"))
+    by_id = load_trial("btk_PiG_Motion3_FF")
+    np.testing.assert_array_equal(by_path.t, by_id.t)
+    assert by_path.events == by_id.events
+    with pytest.raises(InputError, match=r"nowhere\.npz"):
+        load_trial("/nowhere.npz")

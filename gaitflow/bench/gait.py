@@ -307,7 +307,9 @@ def _truth_knees(ses: Any, name: str, t: np.ndarray) -> tuple[np.ndarray, np.nda
     world = wm.markers_caps(t)[0]
     kt = knee_flexion(world)
     pig = wm.knee_ref(t)
-    turn = np.isnan(pig).all(axis=1)
+    # The turn between the passes has no source frame (a trial without Plug-in Gait angles
+    # is NaN throughout, so the turn is taken from the passes' times, not from those).
+    turn = (t > wm.pass_dur) & (t < wm.passes[1].t0)
     kt[turn] = np.nan
     return kt, pig
 
@@ -600,7 +602,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Example: gaitflow bench gait --trials btk_PiG_Motion3_FF --level markers",
     )
-    p.add_argument("--trials", nargs="*", default=None, help="bundled trial ids (default: all)")
+    p.add_argument(
+        "--trials",
+        nargs="*",
+        default=None,
+        help="bundled trial ids (default: all), or paths of .npz trials in the gaitdata format",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--level", choices=("pipeline", "markers"), default="pipeline")
     p.add_argument("--noise-mm", type=float, default=3.0, help="markers level: noise sigma")

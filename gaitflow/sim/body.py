@@ -127,9 +127,14 @@ def _fill_gaps(x: np.ndarray) -> np.ndarray:
 def load_trial(name: str, folder: Path | None = None) -> Trial:
     """Load a bundled trial (or one from ``folder``) into the standard frame.
 
+    ``name`` is a bundled trial id, or the path of a ``.npz`` trial in the gaitdata format
+    (``../shared/gaitdata/README.md``): a researcher's own trial, or one held out of the
+    bundle to check that the pipeline is not tuned to the bundled five.
+
     Raises InputError naming the file when the trial lacks a required lower-limb marker.
     """
-    path = (folder or trials_dir()) / f"{name}.npz"
+    as_path = Path(name)
+    path = as_path if as_path.suffix == ".npz" else (folder or trials_dir()) / f"{name}.npz"
     if not path.exists():
         raise InputError(path, f"no such trial; bundled trials: {', '.join(list_trials())}")
     d = np.load(path, allow_pickle=True)

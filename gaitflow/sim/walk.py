@@ -80,7 +80,10 @@ def _cycles(trial: Trial, body: Body) -> tuple[Cycle, Cycle] | None:
     if not found:
         # Fewer than two strikes of one foot: take the period from the heels' height
         # (autocorrelation), starting at the first labelled strike.
-        period = _period(body)
+        strikes = sorted((e[0], e[1]) for e in trial.events if e[2] == "FS")
+        steps = [b[0] - a[0] for a, b in itertools.pairwise(strikes) if a[1] != b[1]]
+        around = 2.0 * steps[0] if steps and 0.3 < steps[0] < 1.25 else None
+        period = _period(body, around)
         if period is None:
             return None
         fs = [e[0] for e in trial.events if e[2] == "FS"] or [0.0]
@@ -120,14 +123,20 @@ def _cycle_phases(events: list[tuple[float, str, str]], cyc: Cycle) -> list[tupl
     return [(side, kind, ph) for (side, kind), ph in kept.items()]
 
 
-def _period(body: Body) -> float | None:
-    """Gait period (s) from the autocorrelation of the heels' height difference."""
+def _period(body: Body, around: float | None = None) -> float | None:
+    """Gait period (s) from the autocorrelation of the heels' height difference.
+
+    ``around`` (s): a rough period (twice a labelled step's time), searched within 25 %;
+    else 0.7-1.8 s. On a short trial the autocorrelation can rise towards the window's
+    edge, far from the true period: then ``around`` itself is the period.
+    """
     from gaitflow.markers import MARKER_INDEX
 
     z = body.markers[:, MARKER_INDEX["L_HEE"], 2] - body.markers[:, MARKER_INDEX["R_HEE"], 2]
     z = z - z.mean()
     dt = float(np.median(np.diff(body.t)))
-    lags = np.arange(int(0.7 / dt), min(int(1.8 / dt), len(z) - int(0.3 / dt)))
+    lo, hi = (0.75 * around, 1.25 * around) if around else (0.7, 1.8)
+    lags = np.arange(max(1, round(lo / dt)), min(round(hi / dt), len(z) - round(0.3 / dt)) + 1)
     if len(lags) == 0:
         return None
     score = [
@@ -135,6 +144,9 @@ def _period(body: Body) -> float | None:
         for lag in lags
     ]
     best = int(np.argmax(score))
+    if around and best in (0, len(score) - 1):
+        # a maximum at the window's edge is no peak: the labelled step's time is better
+        return float(around)
     if score[best] < 0.5:
         return None
     return float(lags[best] * dt)
