@@ -55,6 +55,15 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    gap, not a wrong label. Blobs left over (stray reflectors, far-side leg markers) stay
    unlabelled.
 
+Published positions: each marker's own cluster mode (a knee, tibia or ankle may take the
+bottom mode's layer when that one continues its depth, ``leg_layer``). The heels are
+published at their surface point (``heel_side_on``, departure): locate puts every marker
+one radius plus base in front of the surface it sits on (``surface_offset_mm``), right
+for a marker facing the camera; a heel marker sits on the back of the heel and is seen
+side-on, so the surface beside it lies at its centre's depth. Measured on the simulator
+(heels in stance, 5 trials): depth 15 mm too near with the offset, which shortened every
+step and stride by 0.6 %.
+
 Far-side SHO, HIP, THI, KNE, TIB and ANK face away from the camera in a side view and are
 never published; nor, by default, the near ASI and PSI (``publish_asis_psis``).
 Conventions: (20, ...) arrays follow ``gaitflow.markers.MARKER_NAMES``; camera space X
