@@ -153,3 +153,26 @@ class Camera:
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise InputError(path, f"not valid JSON: {exc}") from exc
         return cls.from_json(doc, source=path)
+
+
+DEFAULT_MARKER_DIAMETER_MM = 25.0
+
+
+def doc_number(doc: Mapping[str, Any] | None, key: str, low: float, high: float) -> float | None:
+    """A number a camera.json document gives for ``key`` within [low, high], else None.
+
+    The stages read ``marker_diameter_mm`` and ``fps`` this way from the document the
+    calibration record carries; a value out of range or of the wrong type is not used.
+    """
+    v = doc.get(key) if doc else None
+    if isinstance(v, int | float) and not isinstance(v, bool) and low <= v <= high:
+        return float(v)
+    return None
+
+
+def marker_diameter(param: float, doc: Mapping[str, Any] | None) -> float:
+    """Marker diameter, mm: ``param`` when set (> 0), else the camera.json's, else 25 mm."""
+    if param > 0:
+        return float(param)
+    v = doc_number(doc, "marker_diameter_mm", 5.0, 100.0)
+    return DEFAULT_MARKER_DIAMETER_MM if v is None else v

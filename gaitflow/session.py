@@ -462,23 +462,30 @@ def iter_raw_frames(
     call, before the first message.
     """
     frames = reader.frames(name)
-    return _raw_frames(frames, name, camera_id)
+    return _raw_frames(frames, name, camera_id, dict(reader.camera_doc))
 
 
-def _raw_frames(frames: Iterator[Frame], name: str, camera_id: str) -> Iterator[RawFrame]:
+def _raw_frames(
+    frames: Iterator[Frame], name: str, camera_id: str, camera_doc: dict[str, Any]
+) -> Iterator[RawFrame]:
     held: Frame | None = None
     for frame in frames:
         if held is not None:
-            yield _raw(held, name, camera_id, last=False)
+            yield _raw(held, name, camera_id, camera_doc, last=False)
         held = frame
     if held is not None:
-        yield _raw(held, name, camera_id, last=True)
+        yield _raw(held, name, camera_id, camera_doc, last=True)
 
 
-def _raw(frame: Frame, name: str, camera_id: str, last: bool) -> RawFrame:
+def _raw(
+    frame: Frame, name: str, camera_id: str, camera_doc: dict[str, Any], last: bool
+) -> RawFrame:
     index, ts, ir, depth = frame
     return RawFrame(
-        header=RawFrame.make_header(camera_id, name, index, ts, last=last), ir=ir, depth=depth
+        header=RawFrame.make_header(camera_id, name, index, ts, last=last),
+        ir=ir,
+        depth=depth,
+        camera=camera_doc,
     )
 
 

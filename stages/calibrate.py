@@ -35,7 +35,7 @@ Departures from the paper (see docs/readme/labelling.md):
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -44,7 +44,7 @@ from gaitflow.schemas import CalibrationRecord, CalibrationStatus, Message, RawF
 from gaitflow.stages.base import StageSpec
 
 from gaitflow.camera import Camera
-from gaitflow.errors import ParameterError, StageError
+from gaitflow.errors import InputError, ParameterError, StageError
 from gaitflow.params import Param, ParamSet
 
 NAME = "calibrate"
@@ -151,6 +151,9 @@ class CalibrateState:
 
     params: dict[str, Any]
     camera: Camera
+    # The camera.json document in use: the ``camera`` parameter's when it is a whole
+    # document, else the one the raw frames carry (adopted when the parameter is empty).
+    camera_doc: dict[str, Any] = field(default_factory=dict)
     prev_ir: np.ndarray | None = None
     background_ir: np.ndarray | None = None
     background_depth: np.ndarray | None = None
@@ -166,7 +169,32 @@ class CalibrateState:
 
 def init(params: dict[str, Any]) -> CalibrateState:
     """Initial state; ``params`` are resolved by :data:`PARAMS`."""
-    return CalibrateState(params=dict(params), camera=camera_from_param(params["camera"]))
+    cam = params["camera"]
+    doc = dict(cam) if "depth_intrinsics" in cam else {}
+    return CalibrateState(params=dict(params), camera=camera_from_param(cam), camera_doc=doc)
+
+
+def adopt_camera(state: CalibrateState, doc: Mapping[str, Any]) -> CalibrateState:
+    """The state measuring with the camera.json document ``doc`` that came with the frames.
+
+    Only when the ``camera`` parameter is empty (an explicit camera wins), and only once
+    per document. As ``gaitflow analyze`` does with a session's camera.json, the document
+    sets the intrinsics, C (``calibration_markers``) and the marker diameter. A document
+    that does not parse is a StageError naming the bad key.
+    """
+    if state.params["camera"] or not doc or dict(doc) == state.camera_doc:
+        return state
+    try:
+        cam = Camera.from_json(doc, source="the raw frame's camera document")
+    except InputError as exc:
+        raise StageError(NAME, str(exc)) from exc
+    p = dict(state.params)
+    if "calibration_markers" in doc:
+        p["C"] = doc["calibration_markers"]
+    if "marker_diameter_mm" in doc:
+        p["marker_diameter_mm"] = doc["marker_diameter_mm"]
+    # ParameterError naming the value when the document's are out of range
+    return replace(state, params=PARAMS.resolve(p), camera=cam, camera_doc=dict(doc))
 
 
 # --- Alg. 2 and a small Alg. 3 (normal mode) -------------------------------------------
@@ -623,7 +651,8 @@ def _record(state: CalibrateState, hdr: Any) -> CalibrationRecord:
         w=sol.w,
         r_b=sol.r_b,
         length_mm=float(np.linalg.norm(sol.end - sol.start)),
-        camera=cam.to_json(),
+        # the document's other keys (marker_diameter_mm, fps) go on to model, locate, label
+        camera={**{k: v for k, v in state.camera_doc.items() if k != "subject"}, **cam.to_json()},
         tilt_deg=sol.tilt_deg,
         pan_deg=sol.pan_deg,
         offset_mm=sol.offset_mm,
@@ -649,6 +678,7 @@ def step(
     raw = inputs["raw"]
     if not isinstance(raw, RawFrame):
         raise StageError(NAME, f"input 'raw' is a {type(raw).__name__}, not a RawFrame")
+    state = adopt_camera(state, raw.camera)
     p = state.params
     hdr = raw.header
     ir = raw.ir.astype(np.float32)

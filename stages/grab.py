@@ -74,6 +74,13 @@ def _restamp(msg: Message, **changes: Any) -> Message:
     return dataclasses.replace(msg, header=dataclasses.replace(hdr, **changes))
 
 
+def _with_camera(msg: Message, doc: dict[str, Any]) -> Message:
+    """A raw frame without a camera document gets ``doc`` (other messages pass)."""
+    if isinstance(msg, RawFrame) and not msg.camera:
+        return dataclasses.replace(msg, camera=doc)
+    return msg
+
+
 def _selected(spec: str) -> list[str]:
     return [s.strip() for s in spec.split(",") if s.strip()]
 
@@ -136,6 +143,9 @@ class GrabSource:
                 last_ns = ts
                 if offset:
                     group = [_restamp(m, capture_ns=m.header.capture_ns + offset) for m in group]
+                if self.camera_doc:
+                    # The camera.json travels with the frames (calibrate adopts it).
+                    group = [_with_camera(m, self.camera_doc) for m in group]
                 self.frames += 1
                 if limit and self.frames >= limit:
                     yield [_restamp(m, last=True) for m in group]

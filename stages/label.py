@@ -87,6 +87,7 @@ from gaitflow.stages.model import (
     template_layout,
 )
 
+from gaitflow.camera import doc_number
 from gaitflow.errors import StageError
 from gaitflow.markers import CLUSTER_MODES, MARKER_INDEX, MARKER_NAMES, SITES, cluster_mode
 from gaitflow.params import Param, ParamSet
@@ -96,7 +97,16 @@ NAME = "label"
 PARAMS = ParamSet(
     NAME,
     (
-        Param("fps", float, 30.0, "Hz", "nominal frame rate (frame index -> time)", 1.0, 1000.0),
+        Param(
+            "fps",
+            float,
+            0.0,
+            "Hz",
+            "nominal frame rate (frame index -> time); 0 = the session camera.json's (carried"
+            " by the calibration record), else 30",
+            0.0,
+            1000.0,
+        ),
         Param(
             "leg_layer",
             str,
@@ -190,6 +200,7 @@ PARAMS = ParamSet(
     ),
 )
 
+DEFAULT_FPS = 30.0  # Kinect v2, when neither the parameter nor the session says
 NEAR_FOOT = ("TIB", "ANK", "HEE", "TOE")
 HEELS = np.isin(np.arange(20), [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]])
 # Segments whose measured length is checked against the stature-scaled template, and the
@@ -354,6 +365,7 @@ class LabelState:
     params: dict[str, Any]
     trial: str = ""
     frame: int = -1
+    fps: float = DEFAULT_FPS  # the ``fps`` parameter, else the calibration record's camera fps
     sho_x: np.ndarray | None = None  # (6,) KF state, None = no track
     sho_cov: np.ndarray | None = None
     sho_missed: int = 0
@@ -380,7 +392,7 @@ class LabelState:
 
 def init(params: dict[str, Any]) -> LabelState:
     """Initial state; ``params`` are resolved by :data:`PARAMS`."""
-    return _reset_tracks(LabelState(params=dict(params)))
+    return _reset_tracks(LabelState(params=dict(params), fps=params["fps"] or DEFAULT_FPS))
 
 
 def _end_shoulder(st: LabelState, frame_idx: int) -> LabelState:
@@ -658,7 +670,7 @@ def label_frame(
     geo = _learned(geo, st)
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
-    dt = dt_frames / p["fps"]
+    dt = dt_frames / st.fps
     pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3, 3)
     # A mode that found no layer falls back to the normal mode's position.
     pos = np.where(np.isfinite(pos), pos, pos[:, :1, :])
@@ -992,7 +1004,7 @@ def _predictions(
         # far heel's blob at toe-off, the heel's the near toe's, and the shift held.
         foot = np.isin(site[tracked], FOOT_SITES)
         sf = s + 0.3 * np.abs(st.vel[tracked][:, 0])
-        sf = sf + np.where(foot, FOOT_SPEED_SIG * a / p["fps"], 0.0)
+        sf = sf + np.where(foot, FOOT_SPEED_SIG * a / st.fps, 0.0)
         sig[tracked] = np.stack([sf, se, s], axis=1)
     return pred, sig, tracked
 
@@ -1522,7 +1534,8 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     # test cannot be fooled by a recycled id).
     if st.sides is None or st.sides[0] is not cal or st.sides[1] is not model:
         ff = FloorFrame.from_record(cal, p["camera_height_mm"])
-        st = replace(st, sides=(cal, model, ff, Geometry.from_model(model)))
+        fps = p["fps"] or doc_number(cal.camera if cal is not None else None, "fps", 1.0, 1000.0)
+        st = replace(st, sides=(cal, model, ff, Geometry.from_model(model)), fps=fps or DEFAULT_FPS)
     _, _, ff, geo = st.sides
     pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
     radius = np.asarray(mk.marker_radius, dtype=np.float64)

@@ -92,14 +92,12 @@ from gaitflow.schemas import Blobs, CleanFrame, Markers3D
 from gaitflow.stages.base import Inputs, StageSpec
 from gaitflow.stages.warmup import stage_warmup
 
-from gaitflow.camera import Camera
+from gaitflow.camera import DEFAULT_MARKER_DIAMETER_MM, Camera, marker_diameter
 from gaitflow.errors import InputError, StageError
 from gaitflow.markers import CLUSTER_MODES
 from gaitflow.params import Param, ParamSet
 
 MODE_INDEX = {m: i for i, m in enumerate(CLUSTER_MODES)}
-# The common clinical marker size; used when neither the parameter nor the session says.
-DEFAULT_DIAMETER_MM = 25.0
 
 PARAMS = ParamSet(
     "locate",
@@ -870,7 +868,7 @@ def locate_all(
         return np.zeros((0, 3)), np.zeros((0, 3, 3))
     xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
     if diameter is None:
-        diameter = params["marker_diameter_mm"] or DEFAULT_DIAMETER_MM
+        diameter = params["marker_diameter_mm"] or DEFAULT_MARKER_DIAMETER_MM
     back = surface_offset(params, diameter)
     offset = back > 0
     if params["jit"]:
@@ -907,7 +905,7 @@ class LocateState:
     params: Mapping[str, Any]
     camera_doc: Mapping[str, Any]
     camera: Camera
-    diameter: float = DEFAULT_DIAMETER_MM
+    diameter: float = DEFAULT_MARKER_DIAMETER_MM
 
 
 def _camera(doc: Mapping[str, Any], where: str) -> Camera:
@@ -926,20 +924,12 @@ def _camera(doc: Mapping[str, Any], where: str) -> Camera:
         raise StageError("locate", f"bad camera intrinsics from {where}: {exc}") from exc
 
 
-def _diameter(params: Mapping[str, Any], doc: Mapping[str, Any]) -> float:
-    """Marker diameter: the parameter, else the session camera.json's, else 25 mm."""
-    if params["marker_diameter_mm"] > 0:
-        return float(params["marker_diameter_mm"])
-    v = doc.get("marker_diameter_mm") if doc else None
-    if isinstance(v, int | float) and not isinstance(v, bool) and 5.0 <= v <= 100.0:
-        return float(v)
-    return DEFAULT_DIAMETER_MM
-
-
 def _state(params: Mapping[str, Any], doc: Mapping[str, Any], where: str) -> LocateState:
     cam_doc = params.get("camera") or doc
     cam = _camera(cam_doc, "parameter camera" if params.get("camera") else where)
-    return LocateState(dict(params), dict(doc), cam, _diameter(params, doc))
+    return LocateState(
+        dict(params), dict(doc), cam, marker_diameter(params["marker_diameter_mm"], doc)
+    )
 
 
 def init(params: dict[str, Any]) -> LocateState:

@@ -39,6 +39,7 @@ import numpy as np
 from gaitflow.schemas import CalibrationRecord, Markers3D, Message, SubjectModel
 from gaitflow.stages.base import StageSpec
 
+from gaitflow.camera import marker_diameter
 from gaitflow.errors import StageError
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES, SITES
 from gaitflow.params import Param, ParamSet
@@ -118,7 +119,16 @@ PARAMS = ParamSet(
     NAME,
     (
         Param("subject", str, "", "", "pseudonymous subject id written into the model"),
-        Param("marker_diameter_mm", float, 25.0, "mm", "marker diameter", 1.0, 100.0),
+        Param(
+            "marker_diameter_mm",
+            float,
+            0.0,
+            "mm",
+            "marker diameter; 0 = the session camera.json's (carried by the calibration"
+            " record), else 25 mm",
+            0.0,
+            100.0,
+        ),
         Param(
             "gate_sigma",
             float,
@@ -644,7 +654,9 @@ def build_model(
 def _publish(state: ModelState, hdr: Any) -> SubjectModel:
     p = state.params
     ff = FloorFrame.from_record(state.calibration, p["camera_height_mm"])
-    m = build_model(state.frames, ff, p["marker_diameter_mm"], p["gate_sigma"])
+    cal = state.calibration
+    diameter = marker_diameter(p["marker_diameter_mm"], cal.camera if cal is not None else None)
+    m = build_model(state.frames, ff, diameter, p["gate_sigma"])
     return SubjectModel.follow(hdr, subject=p["subject"], **m)
 
 

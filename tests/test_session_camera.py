@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from gaitflow.stages import calibrate
+from gaitflow.schemas import CalibrationRecord, Markers3D, RawFrame
+from gaitflow.stages import calibrate, grab, label, model
 
-from gaitflow.camera import Camera
+from gaitflow.camera import Camera, marker_diameter
 from gaitflow.commands import analyze
-from gaitflow.errors import InputError
+from gaitflow.errors import InputError, ParameterError, StageError
+from gaitflow.evaluate_label import calibration_record
 from gaitflow.session import SessionWriter, session_stage_params
 from gaitflow.sim.variants import OTHER_UNIT, VARIANTS, sim_config, variant_changes
 
@@ -80,3 +83,83 @@ def test_variants_change_the_scene_only() -> None:
         assert not {"params", "stage"} & set(variant_changes(name))
     with pytest.raises(Exception, match="'nope'"):
         variant_changes("nope")
+
+
+# --- the camera.json travels with the frames (gaitflow run, a grab stage on its own) ------
+
+
+def _raw(doc: dict[str, Any], last: bool = False) -> RawFrame:
+    z = np.zeros((424, 512), np.uint16)
+    return RawFrame(
+        header=RawFrame.make_header("cam0", "calibration", 0, 0, last=last),
+        ir=z,
+        depth=z,
+        camera=doc,
+    )
+
+
+def test_calibrate_adopts_the_camera_the_frames_carry() -> None:
+    st = calibrate.init(calibrate.PARAMS.resolve({}))
+    st, out = calibrate.step(st, {"raw": _raw(DOC, last=True)})
+    assert st.camera == OTHER_UNIT
+    assert st.params["C"] == 5 and st.params["marker_diameter_mm"] == 20.0
+    record = out[-1]
+    assert isinstance(record, CalibrationRecord)
+    # the record carries the document on to clean, locate, model and label
+    assert Camera.from_json(record.camera) == OTHER_UNIT
+    assert record.camera["marker_diameter_mm"] == 20 and record.camera["fps"] == 30.0
+    assert "subject" not in record.camera
+
+
+def test_an_explicit_camera_parameter_wins_over_the_frames() -> None:
+    mine = Camera(fx=500.0, fy=500.0)
+    st = calibrate.init(calibrate.PARAMS.resolve({"camera": mine.to_json()}))
+    st, out = calibrate.step(st, {"raw": _raw(DOC, last=True)})
+    assert st.camera == mine and st.params["C"] == 4
+    assert Camera.from_json(out[-1].camera) == mine
+
+
+def test_a_bad_camera_document_on_a_frame_is_a_stage_error_naming_the_key() -> None:
+    st = calibrate.init(calibrate.PARAMS.resolve({}))
+    bad = {
+        **DOC,
+        "depth_intrinsics": {k: v for k, v in DOC["depth_intrinsics"].items() if k != "k2"},
+    }
+    with pytest.raises(StageError, match="k2"):
+        calibrate.step(st, {"raw": _raw(bad)})
+    with pytest.raises(ParameterError, match=r"\b99\b"):
+        calibrate.step(st, {"raw": _raw({**DOC, "calibration_markers": 99})})
+
+
+def test_model_and_label_read_marker_size_and_fps_from_the_record() -> None:
+    record = dataclasses.replace(
+        calibration_record(), camera={**Camera().to_json(), "fps": 15, "marker_diameter_mm": 20}
+    )
+    assert marker_diameter(model.PARAMS.resolve({})["marker_diameter_mm"], record.camera) == 20.0
+    assert marker_diameter(14.0, record.camera) == 14.0
+    assert marker_diameter(0.0, {}) == 25.0
+    mk = Markers3D(
+        header=Markers3D.make_header("cam0", "walk-01", 0, 0),
+        centroid=np.zeros((0, 2)),
+        marker_radius=np.zeros(0),
+        region_radius=np.zeros(0),
+        depth=np.zeros((0, 3)),
+        position=np.zeros((0, 3, 3)),
+    )
+    for fps_param, expect in ((0.0, 15.0), (60.0, 60.0)):
+        st = label.init(label.PARAMS.resolve({"fps": fps_param}))
+        st, _ = label.step(st, {"markers": mk, "calibration": record})
+        assert st.fps == expect
+
+
+def test_session_frames_carry_their_camera_json(tmp_path: Path) -> None:
+    root = tmp_path / "S"
+    w = SessionWriter(root, DOC)
+    z = np.zeros((424, 512), np.uint16)
+    for name in ("calibration", "static", "walk-01"):
+        w.write_recording(name, ((k, 1000 * k, z, z) for k in range(2)))
+    src = grab.SPEC.open(grab.PARAMS.resolve({"source": "session", "path": str(root)}))
+    frames = [m for group in src for m in group]
+    assert len(frames) == 6
+    assert all(Camera.from_json(f.camera) == OTHER_UNIT for f in frames)
+    assert frames[0].camera["marker_diameter_mm"] == 20

@@ -24,6 +24,9 @@ def test_export_sample_to_session_folder(tmp_path, capsys):
     reader = SessionReader(out)
     assert reader.recordings() == ["walk-01"]
     assert reader.camera == Camera()
+    # the camera.json the recorded frames carry (the simulator's: it names the marker size)
+    assert "marker_diameter_mm" not in Camera().to_json()
+    assert reader.camera_doc["marker_diameter_mm"] == 25
     params = {"source": "mcap", "path": str(SAMPLE), "max_frames": 8}
     want = list(SPEC.open(SPEC.params.resolve(params)))
     got = list(reader.frames("walk-01"))

@@ -2,9 +2,10 @@
 
 The ``raw`` frames of a recording made by ``gaitflow record`` are written as a session folder
 (``shared/spec/session-folder.md``): one recording folder per trial, in the order they were
-recorded, with their original frame indices and capture times. MCAP recordings carry no
-camera.json, so the intrinsics come from ``--camera-json`` (a camera.json file) or are the
-Kinect v2 factory-like defaults.
+recorded, with their original frame indices and capture times. The camera.json written is
+``--camera-json`` (a camera.json file) when given, else the document the raw frames carry
+(grab puts its source's camera.json on every frame), else the Kinect v2 factory-like
+defaults (recordings made before the frames carried it).
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ def export_mcap(
     from gaitflow.session import SessionWriter, is_recording_name
     from gaitflow.stages.grab import SPEC
 
-    doc = camera_doc if camera_doc is not None else Camera().to_json()
     params = {
         "source": "mcap",
         "path": str(path),
@@ -39,9 +39,14 @@ def export_mcap(
         "max_frames": max_frames,
     }
     src = SPEC.open(SPEC.params.resolve(params))
-    writer = SessionWriter(out, doc)
+    writer = None
     counts: dict[str, int] = {}
     for trial, groups in itertools.groupby(src, key=lambda g: g[0].header.trial):
+        if writer is None:
+            first = next(groups)
+            doc = camera_doc or dict(first[0].camera) or Camera().to_json()
+            writer = SessionWriter(out, doc)
+            groups = itertools.chain([first], groups)
         if not is_recording_name(trial):
             raise InputError(path, f"trial {trial!r} is not a session recording name")
         if trial in counts:
@@ -83,7 +88,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("recording", help="an .mcap recording with a raw stream")
     p.add_argument("--out", type=Path, required=True, help="session folder to write")
-    p.add_argument("--camera-json", help="camera.json to use (default: Kinect v2 defaults)")
+    p.add_argument(
+        "--camera-json",
+        help="camera.json to use (default: the frames' own, else Kinect v2 defaults)",
+    )
     p.add_argument("--recordings", default="", help="comma-separated trials (default: all)")
     p.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = all)")
     p.set_defaults(func=run)

@@ -95,6 +95,7 @@ class Recording:
             header=RawFrame.make_header(CAMERA_ID, self.name, index, capture_ns, last=last),
             ir=out.ir,
             depth=out.depth,
+            camera=ses.camera_json,
         )
         truth = self._truth(raw, pose, out, t)
         return raw, truth
