@@ -1082,8 +1082,11 @@ def foot_contacts(
                 first = int(np.searchsorted(t, t[r.left] - 0.3))
                 if i > 0:
                     first = max(first, hranges[i - 1].right + 1)
-                if i > 0 and hr.peaks and i - 1 < len(hr.peaks):
-                    first = max(first, hr.peaks[i - 1])
+                # the swing peak between the previous range and this one, found by where it
+                # lies: a gap with no sample has no peak, so peaks and gaps need not pair up
+                between = [k for k in hr.peaks if i > 0 and hranges[i - 1].right < k < r.left]
+                if between:
+                    first = max(first, between[-1])
             # the strike is seen only if the heel is seen moving first (else it was already
             # down when the data or the pass began): then the first sample where its speed
             # is down (NaN never is); never coming to rest inside its flat range means no

@@ -203,6 +203,21 @@ def test_foot_contacts_events_within_one_frame():
             assert np.min(np.abs(np.array(to_true) - x)) <= 1 / 30
 
 
+def test_a_swing_unseen_does_not_cost_the_later_heel_strikes():
+    # The first swing falls in a gap (no sample: the foot hidden, or out of view), so Alg. 6
+    # finds no peak between the first two flat ranges; each later strike must still be
+    # searched after its own swing's peak, not after a later one.
+    t, hh, th, prog, hs_true, _ = synthetic_walk(0.2)
+    gap = (t > 0.85) & (t < 1.33)
+    hh, th, prog = (np.where(gap, np.nan, x) for x in (hh, th, prog))
+    cs = gc.foot_contacts(t, hh, th, prog, prog, "L")
+    hs = np.array([c.heel_strike for c in cs if np.isfinite(c.heel_strike)])
+    later = [x for x in hs_true if x > 2.0]
+    assert len(later) == 2
+    for x in later:
+        assert np.min(np.abs(hs - x)) <= 1 / 30
+
+
 def test_spatiotemporal_from_synthetic_walk():
     period, stride = 1.1, 1200.0
     contacts = {}
