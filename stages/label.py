@@ -1441,6 +1441,23 @@ LAYER_GAIN_MM = 20.0
 LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
 
 
+def surface_point(position: np.ndarray, surface_offset_mm: float) -> np.ndarray:
+    """Marker centres moved back along their viewing rays to the surface they sit on.
+
+    Locate puts every marker ``surface_offset_mm`` (one radius plus base) in front of the
+    surface it sits on, which is right for a marker facing the camera. A heel marker sits
+    on the back of the heel and is seen side-on: the surface beside it lies at its centre's
+    depth, so label publishes the heels at the surface point (``heel_side_on``).
+
+    position : (K, 3) camera mm (the camera at the origin). Returns a new (K, 3) array.
+    """
+    position = np.asarray(position, dtype=np.float64)
+    if surface_offset_mm <= 0 or not len(position):
+        return position.copy()
+    dist = np.linalg.norm(position, axis=1, keepdims=True)
+    return position * (1.0 + surface_offset_mm / dist)
+
+
 def _output(
     mk: Markers3D,
     assign: np.ndarray,
@@ -1482,13 +1499,9 @@ def _output(
     # The label's own mode found no layer: normal mode.
     xyz = np.where(np.isfinite(xyz).all(axis=1)[:, None], xyz, pos[b, 0])
     position[ii] = xyz
-    if side_on is not None and mk.surface_offset_mm > 0:
-        # Locate put every marker one radius (plus base) in front of the surface it sits
-        # on, which is right for a marker facing the camera. A heel marker sits on the back
-        # of the heel and is seen side-on: the surface beside it is at its centre's depth.
+    if side_on is not None:
         k = np.flatnonzero(side_on & (assign >= 0))
-        dist = np.linalg.norm(position[k], axis=1)
-        position[k] *= (1.0 + mk.surface_offset_mm / dist)[:, None]
+        position[k] = surface_point(position[k], mk.surface_offset_mm)
     pixel[ii] = cen[b]
     zs = np.full(20, np.nan) if prev is None else prev[0].copy()
     seen = np.full(20, -(10**9)) if prev is None else prev[1].copy()

@@ -13,7 +13,8 @@ Scores (per visible truth marker and frame; "visible" = in view and not occluded
   first;
 - **recall@beta**: the matched centroid lies within beta px (0.5, 1.5, 2.5);
 - **3D error**: distance between the matched blob's position under the marker's own cluster
-  mode (``gaitflow.markers.cluster_mode``) and the true marker centre, mm; also the median
+  mode (``gaitflow.markers.cluster_mode``), as label publishes it (the heels at their
+  surface point, ``label.surface_point``), and the true marker centre, mm; also the median
   signed Z error (bias);
 - **recall vs mid-exposure truth**: the same against the truth moved to mid-exposure (the
   simulator reports it half a blur sample late, see :func:`truth_lag_frames`);
@@ -45,6 +46,7 @@ from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.errors import ConfigError
 from gaitflow.markers import CLUSTER_MODES, MARKER_NAMES, cluster_mode
 from gaitflow.sim.variants import VARIANTS, sim_config
+from gaitflow.stages.label import surface_point
 
 BETAS = (0.5, 1.5, 2.5)
 PAPER = {
@@ -55,6 +57,7 @@ PAPER = {
 }
 GOALS = {"detected": 99.5, "recall@0.5": 97.0, "err_median_mm": 5.0, "ms_detect_locate_p99": 2.0}
 MODE_OF = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
+HEELS = {MARKER_NAMES.index("L_HEE"), MARKER_NAMES.index("R_HEE")}
 
 
 @dataclass
@@ -132,6 +135,9 @@ def score_frame(
         k = int(tidx[tj])
         mode = int(MODE_OF[k])
         p = np.asarray(markers.position)[bi, mode]
+        if k in HEELS:
+            # as label publishes it (heel_side_on): the heel at its surface point
+            p = surface_point(p[None], float(markers.surface_offset_mm))[0]
         if np.isfinite(p).all():
             err = float(np.linalg.norm(p - truth.position[k]))
             score.errors.append(err)
