@@ -44,10 +44,11 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims;
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
    limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
-   ANK; THI and TIB on their segments, ``_on_segment``; the thigh wand above the knee
-   marker, always; near knee and thigh at the near leg's depth, far knee and thigh, deeper,
-   absorb their blobs; the pelvis's hip label is a slot too, and dropped when the leg
-   below contradicts it; the blob on the knee's fresh track is kept from the foot search).
+   ANK; THI and TIB on their segments, ``_on_segment``, up to the subject's standing
+   offset off the segment's line; the thigh wand above the knee marker, always; near knee
+   and thigh at the near leg's depth, far knee and thigh, deeper, absorb their blobs; the
+   pelvis's hip label is a slot too, and dropped when the leg below contradicts it; the
+   blob on the knee's fresh track is kept from the foot search).
    Segment lengths more than 25 % off the stature-scaled template fall back to it (a
    static labelling error);
 6. a label is left NaN rather than guessed when another blob fits it almost as well
@@ -223,6 +224,9 @@ CLAIM_SIG2 = 4.0
 # Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
 # the foot search leaves to the limb search when the knee has no fresh track (see _lower).
 KNEE_RING = 0.5
+# The largest standing wand offset off its segment's line taken from a static pose, as a
+# share of the segment's length (the 12 trials: up to 0.25, MAC_Walk1's thigh); see _on_segment.
+WAND_OFF_MAX = 0.35
 
 
 # --- the subject geometry label uses --------------------------------------------------
@@ -245,6 +249,9 @@ class Geometry:
     # Sagittal distances between the pelvis search's slots (near PSI, HIP, ASI, far ASI,
     # PSI), by slot pair: see _pelvis.
     pelvis_d0: Mapping[tuple[int, int], float] = field(default_factory=dict)
+    # Standing signed offset (mm, + = forward) of the THI and TIB wands off their segments'
+    # sagittal lines (HIP-KNE, KNE-ANK): see _on_segment.
+    wand_off: Mapping[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_model(cls, model: SubjectModel | None) -> Geometry:
@@ -294,7 +301,15 @@ class Geometry:
             (a, b): float(np.linalg.norm(off[a][fh] - off[b][fh]))
             for a, b in ((0, 1), (1, 2), (0, 2), (2, 3), (0, 4), (3, 4))
         }
-        return cls(offsets, dist, sho_h, pelvis_d0)
+        wand_off = {}
+        for w, a, b in (("THI", "HIP", "KNE"), ("TIB", "KNE", "ANK")):
+            pa, pw, pb = (near[None, SITES.index(s)] for s in (a, w, b))
+            off = float(_wand_offset(pa, pw, pb)[0])
+            # A wand far off its segment is a static labelling error, not a wand: at most
+            # WAND_OFF_MAX of the segment's length.
+            lim = WAND_OFF_MAX * float(dist[SITES.index(a), SITES.index(b)])
+            wand_off[w] = float(np.clip(off, -lim, lim)) if np.isfinite(off) else 0.0
+        return cls(offsets, dist, sho_h, pelvis_d0, wand_off)
 
     def d(self, a: str, b: str) -> float:
         return float(self.dist[SITES.index(a), SITES.index(b)])
@@ -533,17 +548,36 @@ def _interval(pa: np.ndarray, pb: np.ndarray, lo: float, hi: float) -> np.ndarra
     return (np.maximum(lo - d, 0.0) ** 2 + np.maximum(d - hi, 0.0) ** 2) / 15.0**2
 
 
-def _on_segment(pa: np.ndarray, pw: np.ndarray, pb: np.ndarray, sig: float = 25.0) -> np.ndarray:
+def _wand_offset(pa: np.ndarray, pw: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    """Signed sagittal distance (mm) of wand points pw off the line pa-pb (all (M, 3)).
+
+    Positive ahead of a segment that points down (pa above pb), in the direction of
+    increasing f (forward).
+    """
+    a, w, b = pa[:, [0, 2]], pw[:, [0, 2]], pb[:, [0, 2]]
+    e = b - a
+    L = np.sqrt(np.maximum((e**2).sum(axis=1), 1.0))
+    return (e[:, 0] * (w[:, 1] - a[:, 1]) - e[:, 1] * (w[:, 0] - a[:, 0])) / L
+
+
+def _on_segment(
+    pa: np.ndarray, pw: np.ndarray, pb: np.ndarray, sig: float = 25.0, off: float = 0.0
+) -> np.ndarray:
     """Squared-sigma cost of wand points pw off the sagittal segment pa-pb (all (M, 3)).
 
     A wand marker projects (sagittally) onto its segment's line, somewhere between the
-    joints: the perpendicular distance and the overshoot past either end count.
+    joints: the perpendicular distance and the overshoot past either end count. ``off``
+    (mm, signed as :func:`_wand_offset`) is the subject's standing offset of the wand off
+    the line: a wand pointing partly forward or back projects ahead of or behind the line
+    (by up to 120 mm in the trials), and how much differs between the legs (the wand's
+    rotation about the segment), so any offset between 0 and ``off`` is free.
     """
     a, w, b = pa[:, [0, 2]], pw[:, [0, 2]], pb[:, [0, 2]]
     e = b - a
     L2 = np.maximum((e**2).sum(axis=1), 1.0)
     t = ((w - a) * e).sum(axis=1) / L2
-    perp = np.abs(e[:, 0] * (w[:, 1] - a[:, 1]) - e[:, 1] * (w[:, 0] - a[:, 0])) / np.sqrt(L2)
+    s = _wand_offset(pa, pw, pb)
+    perp = np.maximum(s - max(off, 0.0), 0.0) + np.maximum(min(off, 0.0) - s, 0.0)
     over = np.sqrt(L2) * (np.maximum(-t + 0.1, 0.0) + np.maximum(t - 0.9, 0.0))
     return (perp**2 + over**2) / sig**2
 
@@ -807,6 +841,13 @@ def label_frame(
         cur = fm[assign[ii], MODE_OF[ii]]
         age = frame_idx - seen[ii]
         fresh = (age > 0) & (age <= p["track_age"] + 1) & np.isfinite(last[ii]).all(axis=1)
+        # A knee, tibia or ankle track continues on the bottom mode's layer where that one
+        # continues its depth (as _output publishes it): a hand or the other leg passing in
+        # front puts the own mode's layer 100+ mm too near for a frame, and the track's
+        # depth velocity then sent its next predictions off by that much per frame.
+        bot = fm[assign[ii], BOTTOM]
+        gain = np.abs(cur[:, 1] - last[ii, 1]) - np.abs(bot[:, 1] - last[ii, 1])
+        cur = np.where((np.isin(ii, LEG) & fresh & (gain > LAYER_GAIN_MM))[:, None], bot, cur)
         vel[ii] = np.where(fresh[:, None], (cur - last[ii]) / age[:, None], 0.0)
         last[ii] = cur
         seen[ii] = frame_idx
@@ -1319,7 +1360,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
 
             def on_shank(pk: np.ndarray) -> np.ndarray:
                 tib, ank = (np.repeat(anchors[k][None], len(pk), 0) for k in ("TIB", "ANK"))
-                return _on_segment(pk, tib, ank)
+                return _on_segment(pk, tib, ank, off=geo.wand_off.get("TIB", 0.0))
 
             h3.add((0,), on_shank)
     elif "TIB" in anchors:
@@ -1328,7 +1369,8 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         for k in (0, 1):
             h3.add((k,), lambda p: ((p[:, 1] - ref_e) / 60.0) ** 2)
     h3.add((0, 1), lambda pk, pt: _interval(pk, pt, 0.1 * thigh, 0.9 * thigh), where=both)
-    h3.add((4, 1, 0), lambda ph, pt, pk: _on_segment(ph, pt, pk), where=chain)
+    thi_off = geo.wand_off.get("THI", 0.0)
+    h3.add((4, 1, 0), lambda ph, pt, pk: _on_segment(ph, pt, pk, off=thi_off), where=chain)
     if h3.rows.size == 0:
         return
     T3, c3 = h3.T[h3.rows], h3.c
