@@ -24,7 +24,8 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    The side facing the camera follows (walking toward +u shows the right side). A change of
    direction resets every track and re-acquires the near shoulder: the return pass shows
    the other side (the L/R swap). While turning (slow along the line, or heading off it)
-   only the shoulder is labelled;
+   nothing is labelled, the shoulder included (its track may move to the other shoulder as
+   it comes nearer, and the side follows the direction only once the turn is done);
 4. upper body (steps 5-6): every assignment of the pelvis-band blobs to near PSI, HIP, ASI
    and far ASI, PSI (absorbers, never published) is scored (vectorised) by the tracks or
    the model's standing offsets from the shoulder, sagittal rigid distances, and the hard
@@ -801,14 +802,16 @@ def label_frame(
         flips = 0
     walked = st.walked or abs(va) > p["dir_speed"]
     near = "R" if direction > 0 else "L"
-    if sho_blob >= 0:
-        assign[MARKER_INDEX[f"{near}_SHO"]] = sho_blob
     # Turning: slow along the line, backwards, or heading off the line (the near shoulder
     # swings away from the camera as the body turns).
     ve = float(st.sho_x[4])
     turning = walked and (
         abs(va) < p["turn_speed"] or np.sign(va) != direction or abs(ve) > 0.5 * abs(va)
     )
+    if sho_blob >= 0 and not turning:
+        # While turning the track may move to the other shoulder as it comes nearer, and
+        # which side it is follows the walking direction only once the turn is done.
+        assign[MARKER_INDEX[f"{near}_SHO"]] = sho_blob
     if not turning:
         qm = fm.copy()
         qm[:, :, 0] *= direction

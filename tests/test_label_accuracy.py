@@ -14,7 +14,7 @@ from gaitflow.evaluate_label import calibration_record, to_camera
 from gaitflow.markers import MARKER_INDEX
 
 
-def _shoulder_frame(far_sho_mm: float) -> np.ndarray:
+def _shoulder_frame(far_sho_mm: float) -> tuple[label.LabelState, np.ndarray]:
     """One frame after a walking shoulder track whose near shoulder has left the view: the
     only shoulder-height blob is the far shoulder, 60 mm behind the prediction along the
     walk and 100 mm deeper (inside the 150 mm gate)."""
@@ -36,17 +36,21 @@ def _shoulder_frame(far_sho_mm: float) -> np.ndarray:
     ahead = x[0] + v / 30.0
     blob = to_camera(np.array([ahead - 60.0, 100.0, H]))
     pos = np.repeat(blob[None, None, :], 3, axis=1)  # (1 blob, 3 modes, 3)
-    _, assign = label.label_frame(st, pos, 11, ff, geo)
-    return assign
+    st, assign = label.label_frame(st, pos, 11, ff, geo)
+    return st, assign
 
 
 def test_far_shoulder_does_not_continue_the_near_shoulder_track() -> None:
-    assert _shoulder_frame(80.0)[MARKER_INDEX["R_SHO"]] == -1
+    st, assign = _shoulder_frame(80.0)
+    assert assign[MARKER_INDEX["R_SHO"]] == -1
+    assert st.sho_missed == 1  # the track coasts on its prediction
 
 
 def test_far_shoulder_rule_is_what_rejects_it() -> None:
-    # Without the rule (any depth accepted) the same blob continues the track.
-    assert _shoulder_frame(1000.0)[MARKER_INDEX["R_SHO"]] == 0
+    # Without the rule (any depth accepted) the same blob continues the track. (Not
+    # published: a 100 mm step away from the camera reads as heading off the line, a turn.)
+    st, _ = _shoulder_frame(1000.0)
+    assert st.sho_missed == 0
 
 
 def test_far_sho_mm_is_declared_non_negative() -> None:

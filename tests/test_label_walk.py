@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from gaitflow.schemas import GroundTruth, LabelledMarkers, SubjectModel
@@ -162,3 +164,22 @@ def test_empty_and_all_nan_frames_give_empty_labels() -> None:
         )
         st, out = label.SPEC.step(st, {"markers": mk})
         assert len(out) == 1 and (out[0].blob == -1).all() and out[0].near_side == ""
+
+
+def test_a_subject_standing_after_walking_gets_no_labels(subject: SubjectModel) -> None:
+    # Walking, then standing still (stopping to turn in view): the shoulder track slows
+    # below turn_speed, the subject is "turning", and no label is published, the shoulder
+    # included (while turning the track may move to the other shoulder as it comes nearer).
+    walk = synthetic_walk(seed=3, frames_per_pass=30)
+    last = walk.frames[24]
+    still = [
+        dataclasses.replace(last, header=dataclasses.replace(last.header, frame=25 + k))
+        for k in range(20)
+    ]
+    frames = walk.frames[:25] + still
+    labs = _run(Walk(frames, walk.truth[:25] + [walk.truth[24]] * 20, walk.near[:45]), subject)
+    assert np.isfinite(labs[20].position).all(axis=1).sum() >= 8  # walking: labelled
+    for lab in labs[-5:]:
+        assert not np.isfinite(lab.position).any(), MARKER_NAMES[
+            int(np.flatnonzero(np.isfinite(lab.position).all(axis=1))[0])
+        ]
