@@ -19,7 +19,7 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    blob with body markers below it and nearer the camera than they are;
 3. the walking direction is the sign of the shoulder's velocity along a (first sight:
    toward the far end of the walkway, or, when a track that ended for misses restarts
-   within ``max_missed`` frames, the shoulder blob's move since the last frame
+   within ``restart_frames`` frames, the shoulder blob's move since the last frame
    (``_shoulder_move``); then ``flip_frames`` frames against it to change).
    The side facing the camera follows (walking toward +u shows the right side). A change of
    direction resets every track and re-acquires the near shoulder: the return pass shows
@@ -37,10 +37,14 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    model's, refined online from walking frames, see ``_learn_foot``), one depth for the
    foot, the wand bounds of TIB (side-independent, ``_interval``), the triangle foot model
    (ANK inside triangle TIB-TOE-HEE) and the tracks, under hard rules (toe half a foot
-   ahead of the heel, tibia above ankle, heel and toe not far above the ankle); the best
+   ahead of the heel, tibia above ankle, heel and toe not far above the ankle, heel and
+   toe within the tibia wand's reach: its highest place on the shank plus the ankle's
+   distance to them); the best
    ones are completed with the far heel, toe and tibia (the far tibia only absorbs its
-   blob; rigid foot, deeper than the near foot; a lone far blob only on last frame's
-   track); ambiguity is judged on the joint hypotheses; a lone near foot marker needs a
+   blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
+   track; a lone far blob only on last frame's track, and not when the other site's
+   last-frame track lies nearer it in (forward, height)); ambiguity is judged on the
+   joint hypotheses; a lone near foot marker needs a
    fresh track. Foot tracks widen with the time unseen (``FOOT_SPEED_SIG``: swing onset);
    an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims;
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
@@ -124,6 +128,17 @@ PARAMS = ParamSet(
             5,
             "frames",
             "frames the shoulder may be predicted without a detection before the track ends",
+            0,
+            1000,
+        ),
+        Param(
+            "restart_frames",
+            int,
+            10,
+            "frames",
+            "a shoulder track that starts within this many frames of the last one's end takes"
+            " the walking direction from the shoulder blob's move (a track lost mid-walkway"
+            " for a few frames, not a new pass)",
             0,
             1000,
         ),
@@ -222,6 +237,9 @@ FOOT_SPEED_SIG = 2400.0
 # A far heel or toe without a fresh track pays this for a blob that the same site's fresh
 # near track predicts within CLAIM_SIG2 (squared sigma; see _lower).
 CLAIM_SIG2 = 4.0
+# A far heel or toe without a fresh track pays a miss unless it lies this much (mm) deeper
+# than the near foot's mean depth (20 mm with a fresh track; see _lower).
+FAR_NEW_DEPTH = 40.0
 # Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
 # the foot search leaves to the limb search when the knee has no fresh track (see _lower).
 KNEE_RING = 0.5
@@ -526,6 +544,13 @@ def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
     return (d**2).sum(axis=1)
 
 
+def _sagittal(fr: _Frame, idx: int, cand: np.ndarray) -> float:
+    """Sagittal (forward, height) distance, mm, of one candidate blob (1,) to marker
+    ``idx``'s prediction (depth left out)."""
+    d = (fr.pos(idx)[cand] - fr.pred[idx])[0, [0, 2]]
+    return float(np.hypot(*d))
+
+
 def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np.ndarray:
     """Squared-sigma error of sagittal distances |pa - pb| against the model's d0.
 
@@ -775,11 +800,13 @@ def label_frame(
         direction = 1 if float(st.sho_x[0]) < 0.5 * ff.length else -1
         if abs(va) > p["dir_speed"]:
             direction = 1 if va > 0 else -1
-        elif sho_blob >= 0 and frame_idx - st.sho_lost <= p["max_missed"]:
-            # A track that ended for misses (within max_missed frames) restarts
+        elif sho_blob >= 0 and frame_idx - st.sho_lost <= p["restart_frames"]:
+            # A track that ended for misses (within restart_frames frames) restarts
             # mid-walkway, where "toward the far end" is a guess: it named the wrong side
             # for the frames the new track needs to gain a velocity. The shoulder blob's
-            # move since the last frame tells. Not at a pass's first sight: a blob entering
+            # move since the last frame tells (a depth glitch of the shoulder can end the
+            # track and leave it unacquired for 6 frames, one more than max_missed, the
+            # window before). Not at a pass's first sight: a blob entering
             # the image at its edge moves with its visible part.
             da = _shoulder_move(floor[sho_blob], prev_q, p["sho_reach"] * H)
             if abs(da) > p["dir_speed"] * dt:
@@ -1185,6 +1212,13 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # A shank marker never drops far below its standing height while walking.
         ank_h = geo.rel_sho("near", "ANK")[2]
         hy.forbid((0,), lambda pt: pt[:, 2] > ank_h + 0.1 * shank)
+        # With the ankle hidden, the heel and toe still lie within reach of the tibia wand:
+        # at most its highest place on the shank (as _interval below) plus the ankle's
+        # distance to them (triangle inequality). Otherwise a blob far behind a near heel
+        # passed for the tibia wand.
+        for k, site in ((2, "HEE"), (3, "TOE")):
+            r = 0.8 * shank + geo.d("ANK", site)
+            hy.forbid((0, k), lambda pt, pk, r=r: np.hypot(*(pt - pk)[:, [0, 2]].T) < r)
         # The foot's sagittal lengths.
         for a, b, d0 in ((1, 2, geo.d("ANK", "HEE")), (1, 3, geo.d("ANK", "TOE"))):
             hy.add((a, b), lambda pa, pb, d0=d0: _rigid(pa, pb, d0, False))
@@ -1247,7 +1281,12 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         has = (n_near > 0)[:, None]
         cc = c2
         for k in range(2):
-            deep = pres2[:, k] & (p2[:, k, 1] < depth_near[:, None] + 20.0)
+            # Without a fresh track of its own, a far heel or toe has only the loose
+            # standing offsets behind it: at a pass's first frames the far foot's labels
+            # took the near heel and toe, 0-20 mm deeper than the near foot's mean (pulled
+            # toward the camera by the tibia wand).
+            margin = 20.0 if _fresh(fr, far_idx[k]) else FAR_NEW_DEPTH
+            deep = pres2[:, k] & (p2[:, k, 1] < depth_near[:, None] + margin)
             cc = cc + np.where(has & deep, 9.0, 0.0)  # (R, A2)
         cc = np.where(clash, np.inf, cc)
         # An absorber must be clearly far-side: it only ever removes a blob.
@@ -1278,9 +1317,14 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             for k, i in enumerate(far_idx[:2]):
                 if not (keep2[k] and tp[k] < K):
                     continue
-                if lone and not (
-                    fr.age[i] == 1 and _unary(fr, i, cand[tp[k] : tp[k] + 1])[0] < 4.0
-                ):
+                b = cand[tp[k] : tp[k] + 1]
+                if lone and not (fr.age[i] == 1 and _unary(fr, i, b)[0] < 4.0):
+                    continue
+                # ... and the other site's last-frame track does not lie nearer it along
+                # the foot (forward, height): a half-hidden far foot's depth jumps, so the
+                # depth may favour the wrong track.
+                o = far_idx[1 - k]
+                if lone and fr.age[o] == 1 and _sagittal(fr, o, b) < _sagittal(fr, i, b):
                     continue
                 chosen[i] = int(tp[k])
     _accept(fr, chosen, cand, geo, hip, gate)

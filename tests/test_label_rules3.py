@@ -1,0 +1,132 @@
+"""Label: literal layouts for the rules found on the held-out and bundled walks (third
+session, 22 Nov): the tibia wand's reach, a lone far-foot blob between two tracks, the
+direction of a restarted shoulder track, and the far foot's depth at a pass's start.
+
+Conventions: floor coords (a along the walk, e away from the camera, h height), mm; the
+template subject (no model), near side R, walking toward +a.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from gaitflow.stages import label
+from gaitflow.stages.model import FloorFrame
+
+from gaitflow.evaluate_label import calibration_record, to_camera
+from gaitflow.markers import MARKER_INDEX
+
+
+def _frame(q: np.ndarray, sho: np.ndarray, geo: label.Geometry) -> label._Frame:
+    """An untracked walking frame of blobs q (N, 3) (a, e, h), as _leg_frame in
+    tests/test_label_accuracy.py (every cluster mode at the same place)."""
+    st = label.init(label.PARAMS.resolve({}))
+    pred, sig, tracked = label._predictions(st, geo, sho, "R", 1, 100)
+    return label._Frame(
+        qm=np.repeat(np.asarray(q, float)[:, None, :], 3, axis=1),
+        free=np.ones(len(q), bool),
+        assign=np.full(20, -1),
+        pred=pred,
+        sig=sig,
+        near="R",
+        tracked=tracked,
+        ambiguity=4.0,
+        age=np.full(20, 10**9),
+    )
+
+
+def _near(geo: label.Geometry, sho: np.ndarray, site: str, d=(0.0, 0.0, 0.0)) -> list:
+    o = geo.rel_sho("near", site)
+    return [sho[0] + o[0] + d[0], sho[1] + o[1] + d[1], o[2] + d[2]]
+
+
+def test_tibia_reach_keeps_a_blob_far_behind_the_heel_from_the_tibia_label() -> None:
+    # FlatFoot frames 126-129: end of a pass, only the near heel of the near foot in view;
+    # the far heel, lifted in swing (220 mm high), 400 mm behind it, took the near tibia
+    # label (paired with the near heel, no term tied the two). Here 500 mm behind the
+    # template subject's heel: beyond the wand's reach of a heel and of a toe.
+    geo = label.Geometry.from_model(None)
+    sho = np.array([2000.0, 0.0, geo.sho_h])
+    shank = geo.d("KNE", "ANK")
+    hee = _near(geo, sho, "HEE")
+    behind = [hee[0] - 500.0, hee[1] + 30.0, 220.0]
+    assert np.hypot(500.0, 220.0 - hee[2]) > 0.8 * shank + geo.d("ANK", "TOE")
+    fr = _frame(np.array([hee, behind]), sho, geo)
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[MARKER_INDEX["R_TIB"]] != 1
+
+
+def test_lone_tracked_tibia_is_still_named() -> None:
+    # Control: the same blob on the tibia's last-frame track keeps its label.
+    geo = label.Geometry.from_model(None)
+    sho = np.array([2000.0, 0.0, geo.sho_h])
+    tib = _near(geo, sho, "TIB")
+    fr = _frame(np.array([tib]), sho, geo)
+    i = MARKER_INDEX["R_TIB"]
+    fr.pred[i], fr.sig[i], fr.tracked[i], fr.age[i] = tib, (50.0, 70.0, 50.0), True, 1
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[i] == 0
+
+
+def _far_foot_frame() -> tuple[label._Frame, label.Geometry, np.ndarray]:
+    """vicon frame 73: the near foot in view (standing offsets), the far toe hidden, the far
+    heel's blob in stance 260 mm behind the near heel, right on the far heel's last-frame
+    track (forward, height) but 200 mm off its depth (half hidden behind the near foot),
+    on the far toe track's depth, 180 mm behind that track. Blob 0 is the far heel."""
+    geo = label.Geometry.from_model(None)
+    sho = np.array([2000.0, 0.0, geo.sho_h])
+    near = [_near(geo, sho, s) for s in ("TIB", "ANK", "HEE", "TOE")]
+    hee = np.array([near[2][0] - 260.0, near[2][1] + 150.0, 60.0])
+    fr = _frame(np.array([hee, *near]), sho, geo)
+    for name, p in (
+        ("L_HEE", hee + np.array([0.0, -200.0, 0.0])),
+        ("L_TOE", hee + np.array([180.0, 0.0, 0.0])),
+    ):
+        i = MARKER_INDEX[name]
+        fr.pred[i], fr.sig[i], fr.tracked[i], fr.age[i] = p, (130.0, 70.0, 50.0), True, 1
+    return fr, geo, sho
+
+
+def test_lone_far_blob_on_the_heel_track_is_not_named_toe() -> None:
+    fr, geo, sho = _far_foot_frame()
+    # The 3D fit alone prefers the toe, clearly (the heel's depth is off by ~3 sigma).
+    assert label._unary(fr, MARKER_INDEX["L_TOE"], np.array([0]))[0] < 4.0
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[MARKER_INDEX["L_TOE"]] == -1
+    assert fr.assign[MARKER_INDEX["R_HEE"]] == 3  # the near foot is labelled all the same
+
+
+def test_restart_after_six_lost_frames_takes_the_direction_from_the_shoulder_move() -> None:
+    # HC030A frames 88-90: a depth glitch ended the shoulder track, and the shoulder came
+    # back 6 frames later (one more than max_missed) mid-walkway, in the far half: "toward
+    # the far end" named the wrong side (near L) until the velocity flipped it 3 frames on.
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    a0 = 0.6 * ff.length
+    body = [[a0 + 20.0, 60.0, h] for h in (0.45 * H, 0.55 * H, 0.65 * H)]
+    last = np.array([[a0, 0.0, H], *body])
+    now = last + np.array([40.0, 0.0, 0.0])  # the shoulder (and body) moved 40 mm toward +a
+    st = label.init(label.PARAMS.resolve({}))
+    st = replace(st, trial="walk-01", frame=99, sho_lost=94, prev_q=last)
+    pos = np.repeat(to_camera(now)[:, None, :], 3, axis=1)
+    st, assign = label.label_frame(st, pos, 100, ff, geo)
+    assert st.direction == 1
+    assert assign[MARKER_INDEX["R_SHO"]] == 0
+
+
+def test_untracked_far_foot_does_not_take_the_near_heel_and_toe_at_a_pass_start() -> None:
+    # HC002D seed 2 frames 25-26 (seed 0: 30-31): a pass's first frame, no tracks; the
+    # near foot 40 mm deeper than the standing offsets say (the shoulder's depth error),
+    # its tibia wand 40 mm nearer the camera still. The far heel and toe labels took the
+    # near heel and toe (0-20 mm deeper than the near foot's mean, which the wand pulls
+    # toward the camera) and left the near foot with its tibia alone.
+    geo = label.Geometry.from_model(None)
+    sho = np.array([2000.0, 0.0, geo.sho_h])
+    sites = ("TIB", "ANK", "HEE", "TOE")
+    q = [_near(geo, sho, s, (0.0, 40.0 - (40.0 if s == "TIB" else 0.0), 0.0)) for s in sites]
+    fr = _frame(np.array(q), sho, geo)
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[MARKER_INDEX["L_HEE"]] == -1 and fr.assign[MARKER_INDEX["L_TOE"]] == -1
+    assert [fr.assign[MARKER_INDEX[f"R_{s}"]] for s in sites] == [0, 1, 2, 3]
