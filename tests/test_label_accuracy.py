@@ -58,19 +58,13 @@ def test_far_sho_mm_is_declared_non_negative() -> None:
         label.PARAMS.resolve({"far_sho_mm": -1.0})
 
 
-def _leg_frame() -> tuple[label._Frame, dict[str, int], label.Geometry, np.ndarray]:
-    """A walking frame of the template subject (near side R, walking toward +a): blobs at the
-    standing offsets of the near leg's THI, KNE, TIB, ANK, HEE and TOE; the hip is hidden."""
-    geo = label.Geometry.from_model(None)
-    sho = np.array([2000.0, 0.0, geo.sho_h])
-    sites = ("THI", "KNE", "TIB", "ANK", "HEE", "TOE")
-    offs = [geo.rel_sho("near", s) for s in sites]
-    q = np.array([[sho[0] + o[0], sho[1] + o[1], o[2]] for o in offs])
-    qm = np.repeat(q[:, None, :], 3, axis=1)
+def walking_frame(q: np.ndarray, sho: np.ndarray, geo: label.Geometry) -> label._Frame:
+    """An untracked walking frame (near side R, walking toward +a) of blobs q (N, 3)
+    (a, e, h) mm, every cluster mode at the same place."""
     st = label.init(label.PARAMS.resolve({}))
     pred, sig, tracked = label._predictions(st, geo, sho, "R", 1, 100)
-    fr = label._Frame(
-        qm=qm,
+    return label._Frame(
+        qm=np.repeat(np.asarray(q, float)[:, None, :], 3, axis=1),
         free=np.ones(len(q), bool),
         assign=np.full(20, -1),
         pred=pred,
@@ -80,7 +74,17 @@ def _leg_frame() -> tuple[label._Frame, dict[str, int], label.Geometry, np.ndarr
         ambiguity=4.0,
         age=np.full(20, 10**9),
     )
-    return fr, {s: k for k, s in enumerate(sites)}, geo, sho
+
+
+def _leg_frame() -> tuple[label._Frame, dict[str, int], label.Geometry, np.ndarray]:
+    """A walking frame of the template subject (near side R, walking toward +a): blobs at the
+    standing offsets of the near leg's THI, KNE, TIB, ANK, HEE and TOE; the hip is hidden."""
+    geo = label.Geometry.from_model(None)
+    sho = np.array([2000.0, 0.0, geo.sho_h])
+    sites = ("THI", "KNE", "TIB", "ANK", "HEE", "TOE")
+    offs = [geo.rel_sho("near", s) for s in sites]
+    q = np.array([[sho[0] + o[0], sho[1] + o[1], o[2]] for o in offs])
+    return walking_frame(q, sho, geo), {s: k for k, s in enumerate(sites)}, geo, sho
 
 
 def test_hip_label_on_the_thigh_wand_is_dropped_by_the_limb_search() -> None:

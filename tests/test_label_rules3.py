@@ -13,27 +13,10 @@ from dataclasses import replace
 import numpy as np
 from gaitflow.stages import label
 from gaitflow.stages.model import FloorFrame
+from test_label_accuracy import walking_frame
 
 from gaitflow.evaluate_label import calibration_record, to_camera
 from gaitflow.markers import MARKER_INDEX
-
-
-def _frame(q: np.ndarray, sho: np.ndarray, geo: label.Geometry) -> label._Frame:
-    """An untracked walking frame of blobs q (N, 3) (a, e, h), as _leg_frame in
-    tests/test_label_accuracy.py (every cluster mode at the same place)."""
-    st = label.init(label.PARAMS.resolve({}))
-    pred, sig, tracked = label._predictions(st, geo, sho, "R", 1, 100)
-    return label._Frame(
-        qm=np.repeat(np.asarray(q, float)[:, None, :], 3, axis=1),
-        free=np.ones(len(q), bool),
-        assign=np.full(20, -1),
-        pred=pred,
-        sig=sig,
-        near="R",
-        tracked=tracked,
-        ambiguity=4.0,
-        age=np.full(20, 10**9),
-    )
 
 
 def _near(geo: label.Geometry, sho: np.ndarray, site: str, d=(0.0, 0.0, 0.0)) -> list:
@@ -52,7 +35,7 @@ def test_tibia_reach_keeps_a_blob_far_behind_the_heel_from_the_tibia_label() -> 
     hee = _near(geo, sho, "HEE")
     behind = [hee[0] - 500.0, hee[1] + 30.0, 220.0]
     assert np.hypot(500.0, 220.0 - hee[2]) > 0.8 * shank + geo.d("ANK", "TOE")
-    fr = _frame(np.array([hee, behind]), sho, geo)
+    fr = walking_frame(np.array([hee, behind]), sho, geo)
     label._lower(fr, geo, sho, geo.sho_h, 4.0)
     assert fr.assign[MARKER_INDEX["R_TIB"]] != 1
 
@@ -62,7 +45,7 @@ def test_lone_tracked_tibia_is_still_named() -> None:
     geo = label.Geometry.from_model(None)
     sho = np.array([2000.0, 0.0, geo.sho_h])
     tib = _near(geo, sho, "TIB")
-    fr = _frame(np.array([tib]), sho, geo)
+    fr = walking_frame(np.array([tib]), sho, geo)
     i = MARKER_INDEX["R_TIB"]
     fr.pred[i], fr.sig[i], fr.tracked[i], fr.age[i] = tib, (50.0, 70.0, 50.0), True, 1
     label._lower(fr, geo, sho, geo.sho_h, 4.0)
@@ -78,7 +61,7 @@ def _far_foot_frame() -> tuple[label._Frame, label.Geometry, np.ndarray]:
     sho = np.array([2000.0, 0.0, geo.sho_h])
     near = [_near(geo, sho, s) for s in ("TIB", "ANK", "HEE", "TOE")]
     hee = np.array([near[2][0] - 260.0, near[2][1] + 150.0, 60.0])
-    fr = _frame(np.array([hee, *near]), sho, geo)
+    fr = walking_frame(np.array([hee, *near]), sho, geo)
     for name, p in (
         ("L_HEE", hee + np.array([0.0, -200.0, 0.0])),
         ("L_TOE", hee + np.array([180.0, 0.0, 0.0])),
@@ -126,7 +109,7 @@ def test_untracked_far_foot_does_not_take_the_near_heel_and_toe_at_a_pass_start(
     sho = np.array([2000.0, 0.0, geo.sho_h])
     sites = ("TIB", "ANK", "HEE", "TOE")
     q = [_near(geo, sho, s, (0.0, 40.0 - (40.0 if s == "TIB" else 0.0), 0.0)) for s in sites]
-    fr = _frame(np.array(q), sho, geo)
+    fr = walking_frame(np.array(q), sho, geo)
     label._lower(fr, geo, sho, geo.sho_h, 4.0)
     assert fr.assign[MARKER_INDEX["L_HEE"]] == -1 and fr.assign[MARKER_INDEX["L_TOE"]] == -1
     assert [fr.assign[MARKER_INDEX[f"R_{s}"]] for s in sites] == [0, 1, 2, 3]
