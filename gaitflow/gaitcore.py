@@ -32,7 +32,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -1137,6 +1137,40 @@ def foot_contacts(
         pos = np.asarray(heel_prog[r.left : planted + 1], dtype=float)
         pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")
         out.append(Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right])))
+    return out
+
+
+def _in_gap(t: np.ndarray, seen: np.ndarray, when: float, max_s: float) -> bool:
+    """Whether ``when`` falls in a run of unseen samples spanning more than ``max_s``."""
+    before = np.flatnonzero(seen & (t <= when))
+    after = np.flatnonzero(seen & (t >= when))
+    if not before.size or not after.size:
+        return True  # beyond the last (or before the first) sample seen
+    return float(t[after[0]] - t[before[-1]]) > max_s
+
+
+def drop_events_in_gaps(
+    contacts: Sequence[Contact],
+    t: np.ndarray,
+    heel_seen: np.ndarray,
+    toe_seen: np.ndarray,
+    max_s: float,
+) -> list[Contact]:
+    """Contacts whose heel strike (toe off) falls in a gap of the heel (toe) longer than
+    ``max_s`` lose that event (NaN): a gap filled by a curve only guesses when the foot
+    landed or left. ``max_s`` <= 0: no change.
+
+    t : (N,) s, the frame times; heel_seen, toe_seen : (N,) bool, the marker labelled then.
+    """
+    if max_s <= 0:
+        return list(contacts)
+    out = []
+    for c in contacts:
+        if _finite(c.heel_strike) and _in_gap(t, heel_seen, c.heel_strike, max_s):
+            c = replace(c, heel_strike=float("nan"))
+        if _finite(c.toe_off) and _in_gap(t, toe_seen, c.toe_off, max_s):
+            c = replace(c, toe_off=float("nan"))
+        out.append(c)
     return out
 
 

@@ -77,6 +77,16 @@ PARAMS = ParamSet(
         ),
         Param("max_gap_s", float, 0.3, "s", "longest gap filled by a cubic Bezier", 0.0, 2.0),
         Param(
+            "event_gap_s",
+            float,
+            0.15,
+            "s",
+            "a heel strike or toe off inside a gap of its marker longer than this is unknown,"
+            " not guessed from the filled curve (0=off)",
+            0.0,
+            2.0,
+        ),
+        Param(
             "outlier_mm",
             float,
             25.0,
@@ -125,7 +135,7 @@ PARAMS = ParamSet(
             1.0,
             "s",
             "window of that running median",
-            0.1,
+            0.15,
             10.0,
         ),
         Param("resample_hz", float, 100.0, "Hz", "resampling rate (the paper: 100)", 10.0, 1000.0),
@@ -530,7 +540,13 @@ def analyse(
                 found_c = cache.get(key)
                 if found_c is None:
                     found_c = cache.used[key] = tuple(gc.foot_contacts(*args, **kw))
-                contacts[s] = list(found_c)
+                contacts[s] = gc.drop_events_in_gaps(
+                    found_c,
+                    t,
+                    np.isfinite(pos[:, MARKER_INDEX[f"{s}_HEE"]]).all(axis=1),
+                    np.isfinite(pos[:, MARKER_INDEX[f"{s}_TOE"]]).all(axis=1),
+                    p["event_gap_s"],
+                )
                 if not live:
                     tilt[s] = gc.progression(
                         pq[sl, MARKER_INDEX[f"{s}_KNE"]], origin, u

@@ -384,3 +384,19 @@ def test_smooth_depth_moves_a_wrong_layer_back_along_its_ray() -> None:
     )
     kept = gc.smooth_depth(t, pos, 0.3, 30.0, 1.0, outlier_markers=[])
     assert kept[21, 0, 2] < 2590.0  # excluded markers keep their (smoothed) wrong depth
+
+
+def test_an_event_inside_a_long_gap_is_unknown_not_guessed():
+    t = np.arange(20) / 30.0
+    heel = np.ones(20, bool)
+    toe = np.ones(20, bool)
+    toe[5:13] = False  # 8 frames (0.27 s) without the toe: its lift-off is not seen
+    heel[15:17] = False  # 2 frames: a short gap, its event stands
+    c = gc.Contact("L", t[16], float("nan"), t[9], 0.0, 0.0, 0.6)
+    (out,) = gc.drop_events_in_gaps([c], t, heel, toe, 0.15)
+    assert np.isnan(out.toe_off)
+    assert out.heel_strike == t[16]
+    # on a seen sample, or with the rule off, nothing changes
+    (same,) = gc.drop_events_in_gaps([c], t, heel, np.ones(20, bool), 0.15)
+    assert same == c
+    assert gc.drop_events_in_gaps([c], t, heel, toe, 0.0) == [c]
