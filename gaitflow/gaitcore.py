@@ -1084,7 +1084,8 @@ def foot_contacts(
                     first = max(first, hranges[i - 1].right + 1)
                 # the swing peak between the previous range and this one, found by where it
                 # lies: a gap with no sample has no peak, so peaks and gaps need not pair up
-                between = [k for k in hr.peaks if i > 0 and hranges[i - 1].right < k < r.left]
+                prev_right = hranges[i - 1].right if i > 0 else n
+                between = [k for k in hr.peaks if prev_right < k < r.left]
                 if between:
                     first = max(first, between[-1])
             # the strike is seen only if the heel is seen moving first (else it was already

@@ -182,7 +182,7 @@ def adopt_camera(state: CalibrateState, doc: Mapping[str, Any]) -> CalibrateStat
     sets the intrinsics, C (``calibration_markers``) and the marker diameter. A document
     that does not parse is a StageError naming the bad key.
     """
-    if state.params["camera"] or not doc or dict(doc) == state.camera_doc:
+    if state.params["camera"] or not doc or doc == state.camera_doc:
         return state
     try:
         cam = Camera.from_json(doc, source="the raw frame's camera document")

@@ -74,13 +74,6 @@ def _restamp(msg: Message, **changes: Any) -> Message:
     return dataclasses.replace(msg, header=dataclasses.replace(hdr, **changes))
 
 
-def _with_camera(msg: Message, doc: dict[str, Any]) -> Message:
-    """A raw frame without a camera document gets ``doc`` (other messages pass)."""
-    if isinstance(msg, RawFrame) and not msg.camera:
-        return dataclasses.replace(msg, camera=doc)
-    return msg
-
-
 def _selected(spec: str) -> list[str]:
     return [s.strip() for s in spec.split(",") if s.strip()]
 
@@ -143,9 +136,6 @@ class GrabSource:
                 last_ns = ts
                 if offset:
                     group = [_restamp(m, capture_ns=m.header.capture_ns + offset) for m in group]
-                if self.camera_doc:
-                    # The camera.json travels with the frames (calibrate adopts it).
-                    group = [_with_camera(m, self.camera_doc) for m in group]
                 self.frames += 1
                 if limit and self.frames >= limit:
                     yield [_restamp(m, last=True) for m in group]
@@ -321,7 +311,8 @@ class GrabSource:
             try:
                 for i, (ts, ir, depth) in enumerate(driver.frames()):
                     hdr = RawFrame.make_header(camera, trial, i, ts)
-                    yield [RawFrame(header=hdr, ir=ir, depth=depth)]
+                    # the device's camera.json travels with its frames (calibrate adopts it)
+                    yield [RawFrame(header=hdr, ir=ir, depth=depth, camera=self.camera_doc or {})]
             finally:
                 driver.close()
 

@@ -876,8 +876,8 @@ def label_frame(
         # front puts the own mode's layer 100+ mm too near for a frame, and the track's
         # depth velocity then sent its next predictions off by that much per frame.
         bot = fm[assign[ii], BOTTOM]
-        gain = np.abs(cur[:, 1] - last[ii, 1]) - np.abs(bot[:, 1] - last[ii, 1])
-        cur = np.where((np.isin(ii, LEG) & fresh & (gain > LAYER_GAIN_MM))[:, None], bot, cur)
+        better = _bottom_continues(cur[:, 1], bot[:, 1], last[ii, 1])
+        cur = np.where((np.isin(ii, LEG) & fresh & better)[:, None], bot, cur)
         vel[ii] = np.where(fresh[:, None], (cur - last[ii]) / age[:, None], 0.0)
         last[ii] = cur
         seen[ii] = frame_idx
@@ -1530,6 +1530,13 @@ LAYER_GAIN_MM = 20.0
 LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
 
 
+def _bottom_continues(own: np.ndarray, bottom: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Where the bottom mode's depth continues the last one better than the own mode's by
+    ``LAYER_GAIN_MM`` (same-shape arrays of depths, mm; NaN anywhere = no)."""
+    with np.errstate(invalid="ignore"):
+        return np.abs(bottom - last) + LAYER_GAIN_MM < np.abs(own - last)
+
+
 def surface_point(position: np.ndarray, surface_offset_mm: float) -> np.ndarray:
     """Marker centres moved back along their viewing rays to the surface they sit on.
 
@@ -1580,9 +1587,7 @@ def _output(
             bk = assign[k]
             if bk < 0 or not np.isfinite(zp[k]) or frame - seen[k] > LAYER_MAX_AGE:
                 continue
-            zo, zb = pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2]
-            finite = np.isfinite(zo) and np.isfinite(zb)
-            if finite and abs(zb - zp[k]) + LAYER_GAIN_MM < abs(zo - zp[k]):
+            if _bottom_continues(pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2], zp[k]):
                 mode[k] = BOTTOM
     xyz = pos[b, mode[ii]]
     # The label's own mode found no layer: normal mode.

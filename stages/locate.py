@@ -868,7 +868,7 @@ def locate_all(
         return np.zeros((0, 3)), np.zeros((0, 3, 3))
     xy = camera.undistort(centroid)  # R9: undistort once per blob, shared by the modes
     if diameter is None:
-        diameter = params["marker_diameter_mm"] or DEFAULT_MARKER_DIAMETER_MM
+        diameter = marker_diameter(params["marker_diameter_mm"], None)
     back = surface_offset(params, diameter)
     offset = back > 0
     if params["jit"]:
