@@ -1133,6 +1133,10 @@ def foot_contacts(
                 j = j + int(rest[0]) if rest.size else max(j, stop)
                 if not vt[j] > to_speed_frac * ref:
                     continue  # the toe never left inside this stride: no toe off
+                if j > q.right and not np.isfinite(vt[j - 1]):
+                    # the toe sped up while unseen (its range was locked before a gap too
+                    # long to fill): the first sample after the gap is not the toe off
+                    continue
             to = float(t[j])
         # the heel stands still from its strike to its rise, then rolls forward with the foot
         pos = np.asarray(heel_prog[r.left : planted + 1], dtype=float)

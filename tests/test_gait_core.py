@@ -218,6 +218,23 @@ def test_a_swing_unseen_does_not_cost_the_later_heel_strikes():
         assert np.min(np.abs(hs - x)) <= 1 / 30
 
 
+def test_a_toe_off_hidden_after_its_lock_is_unknown_not_the_first_sample_after():
+    # The toe rolls up (Alg. 6 locks its range) before it moves forward; it is then unseen
+    # for 0.3 s, beyond the gap filler: its speed-up happened in the gap. Before, the speed
+    # search stepped over the missing samples and gave the toe off 0.3 s late.
+    t, hh, th, prog, _, to_true = synthetic_walk(0.2)
+    toe_prog = np.interp(t - 0.06, t, prog)
+    cs = gc.foot_contacts(t, hh, th, prog, toe_prog, "L")
+    assert abs(cs[1].toe_off - (to_true[1] + 0.06)) <= 1 / 30
+    gap = (t > 2.0) & (t < 2.3)
+    th, toe_prog = (np.where(gap, np.nan, x) for x in (th, toe_prog))
+    hidden = gc.foot_contacts(t, hh, th, prog, toe_prog, "L")
+    assert np.isnan(hidden[1].toe_off)
+    assert [c.toe_off for k, c in enumerate(hidden) if k != 1] == [
+        c.toe_off for k, c in enumerate(cs) if k != 1
+    ]
+
+
 def test_spatiotemporal_from_synthetic_walk():
     period, stride = 1.1, 1200.0
     contacts = {}
