@@ -143,6 +143,22 @@ class Camera:
         )
 
     @classmethod
+    def from_doc(cls, doc: Mapping[str, Any] | None, source: object = "camera") -> Camera:
+        """A camera.json document, or a flat mapping of Camera fields; the defaults when
+        empty. A bad or unknown key raises InputError naming ``source``."""
+        if not doc:
+            return cls()
+        if "depth_intrinsics" in doc:
+            return cls.from_json(doc, source=source)
+        unknown = sorted(set(doc) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise InputError(source, f"unknown camera key {unknown[0]!r}")
+        try:
+            return cls(**dict(doc))
+        except TypeError as exc:
+            raise InputError(source, f"bad camera fields: {exc}") from exc
+
+    @classmethod
     def load(cls, path: str | Path) -> Camera:
         """Read a camera.json file."""
         path = Path(path)

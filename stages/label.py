@@ -59,7 +59,10 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 6. a label is left NaN rather than guessed when another blob fits it almost as well
    (``ambiguity``) or it breaks a track gate or a rigid distance: an occluded marker gives a
    gap, not a wrong label. Blobs left over (stray reflectors, far-side leg markers) stay
-   unlabelled.
+   unlabelled. A marker whose prediction projects outside the image (``view_gate``: the
+   subject entering or leaving the view) takes no blob: otherwise the search, which pays
+   for every label it leaves out, shifted the chain (the tibia label on the ankle, the
+   ankle's on the heel) as a leg left the field of view.
 
 Published positions: each marker's own cluster mode (a knee, tibia or ankle may take the
 bottom mode's layer when that one continues its depth, ``leg_layer``). The heels are
@@ -93,8 +96,8 @@ from gaitflow.stages.model import (
     template_layout,
 )
 
-from gaitflow.camera import doc_number
-from gaitflow.errors import StageError
+from gaitflow.camera import Camera, doc_number
+from gaitflow.errors import InputError, StageError
 from gaitflow.markers import CLUSTER_MODES, MARKER_INDEX, MARKER_NAMES, SITES, cluster_mode
 from gaitflow.params import Param, ParamSet
 
@@ -179,6 +182,14 @@ PARAMS = ParamSet(
             False,
             "",
             "publish the near ASI and PSI (their depth is poor on the pelvis silhouette)",
+        ),
+        Param(
+            "view_gate",
+            bool,
+            True,
+            "",
+            "a marker whose prediction projects outside the image (the calibration record's"
+            " camera) takes no blob",
         ),
         Param(
             "heel_side_on",
@@ -419,7 +430,8 @@ class LabelState:
     foot_n: int = 0
     # (calibration, model, FloorFrame, Geometry): the side inputs the floor frame and the
     # geometry were derived from, and those (derived once per side input, not per frame).
-    sides: tuple[Any, Any, FloorFrame, Geometry] | None = None
+    # (calibration, model, their floor frame, geometry, camera of the record or None)
+    sides: tuple[Any, Any, FloorFrame, Geometry, Camera | None] | None = None
     # ((20,) camera Z mm, (20,) frame) of each marker's last published position
     leg_depth: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -515,6 +527,7 @@ class _Frame:
     age: np.ndarray  # (20,) frames since each marker was last labelled
     publish_asis_psis: bool = True
     still: np.ndarray | None = None  # (N,) bool, blob stood still while the subject walked
+    outside: np.ndarray | None = None  # (20,) bool, predicted outside the image: no blob
 
     def pos(self, i: int) -> np.ndarray:
         """(N, 3) blob positions under marker ``i``'s cluster mode."""
@@ -641,6 +654,8 @@ class _Hyp:
         d = (X - fr.pred[idx]) / fr.sig[idx]
         # (r, K + 1) unary cost (as _unary), last column: missing.
         self.U = np.hstack([(d**2).sum(axis=2).T, np.full((self.r, 1), MISS_COST)])
+        if fr.outside is not None:
+            self.U[fr.outside[idx], : self.K] = np.inf  # only "missing" is left to them
         X0 = np.concatenate([X, np.zeros((1, self.r, 3))])
         self.Q = X0[self.T, np.arange(self.r)]  # (M, r, 3)
         self._bad = np.zeros(len(self.T), bool)
@@ -708,6 +723,7 @@ def label_frame(
     ff: FloorFrame,
     geo: Geometry,
     radius: np.ndarray | None = None,
+    view: Camera | None = None,
 ) -> tuple[LabelState, np.ndarray]:
     """Alg. 5 on one frame.
 
@@ -844,6 +860,7 @@ def label_frame(
         qm[:, :, 0] *= direction
         sho = np.array([direction * st.sho_x[0], st.sho_x[1], st.sho_x[2]])
         pred, sig, tracked = _predictions(st, geo, sho, near, direction, frame_idx)
+        outside = None if view is None else beyond_image(pred, direction, ff, view)
         free = ok.copy()
         if sho_blob >= 0:
             free[sho_blob] = False
@@ -860,6 +877,7 @@ def label_frame(
             age,
             p["publish_asis_psis"],
             _still(ah, None if prev_q is None else prev_q[:, [0, 2]], abs(va) * dt),
+            outside,
         )
         _pelvis(fr, geo, sho, H, p["gate"])
         _lower(fr, geo, sho, H, p["gate"])
@@ -1078,6 +1096,28 @@ def _predictions(
         sf = sf + np.where(foot, FOOT_SPEED_SIG * a / st.fps, 0.0)
         sig[tracked] = np.stack([sf, se, s], axis=1)
     return pred, sig, tracked
+
+
+def beyond_image(pred: np.ndarray, direction: int, ff: FloorFrame, view: Camera) -> np.ndarray:
+    """Which predicted markers project outside the image (``view_gate``).
+
+    pred : (M, 3) predictions (f, e, h) mm in the oriented floor frame (f along the walking
+    direction ``direction``); ff : the floor frame; view : the camera (intrinsics, image
+    size). Returns (M,) bool; a prediction behind the camera or NaN counts as outside.
+    The point estimate decides, not its uncertainty: a leg leaving the view is predicted
+    from its last frames, a few px from the edge it crossed.
+    """
+    q = np.array(pred, dtype=np.float64)
+    q[:, 0] *= direction
+    uv = view.project(ff.to_camera(q))
+    with np.errstate(invalid="ignore"):
+        inside = (
+            (uv[:, 0] >= 0)
+            & (uv[:, 0] <= view.width - 1)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] <= view.height - 1)
+        )
+    return ~inside
 
 
 def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -> None:
@@ -1642,11 +1682,18 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     if st.sides is None or st.sides[0] is not cal or st.sides[1] is not model:
         ff = FloorFrame.from_record(cal, p["camera_height_mm"])
         fps = p["fps"] or doc_number(cal.camera if cal is not None else None, "fps", 1.0, 1000.0)
-        st = replace(st, sides=(cal, model, ff, Geometry.from_model(model)), fps=fps or DEFAULT_FPS)
-    _, _, ff, geo = st.sides
+        view = None
+        if p["view_gate"] and cal is not None and cal.camera:
+            try:
+                view = Camera.from_doc(cal.camera, source="calibration record camera")
+            except InputError as exc:
+                raise StageError(NAME, f"bad camera in the calibration record: {exc}") from exc
+        geo = Geometry.from_model(model)
+        st = replace(st, sides=(cal, model, ff, geo, view), fps=fps or DEFAULT_FPS)
+    _, _, ff, geo, view = st.sides
     pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
     radius = np.asarray(mk.marker_radius, dtype=np.float64)
-    st, assign = label_frame(st, pos, mk.header.frame, ff, geo, radius)
+    st, assign = label_frame(st, pos, mk.header.frame, ff, geo, radius, view)
     near = "" if st.direction == 0 else ("R" if st.direction > 0 else "L")
     if st.sho_x is None:
         near = ""

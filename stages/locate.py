@@ -910,17 +910,9 @@ class LocateState:
 
 def _camera(doc: Mapping[str, Any], where: str) -> Camera:
     """A camera.json document, or a flat mapping of Camera fields, as a Camera."""
-    if not doc:
-        return Camera()
     try:
-        if "depth_intrinsics" in doc:
-            return Camera.from_json(doc, source=where)
-        fields = set(Camera.__dataclass_fields__)
-        unknown = sorted(set(doc) - fields)
-        if unknown:
-            raise InputError(where, f"unknown camera key {unknown[0]!r}")
-        return Camera(**dict(doc))
-    except (InputError, TypeError) as exc:
+        return Camera.from_doc(doc, source=where)
+    except InputError as exc:
         raise StageError("locate", f"bad camera intrinsics from {where}: {exc}") from exc
 
 

@@ -1,6 +1,7 @@
 """Label: literal layouts for the rules found on the held-out and bundled walks (third
 session, 22 Nov): the tibia wand's reach, a lone far-foot blob between two tracks, the
-direction of a restarted shoulder track, and the far foot's depth at a pass's start.
+direction of a restarted shoulder track, and the far foot's depth at a pass's start; and
+(fourth session) a marker predicted outside the image.
 
 Conventions: floor coords (a along the walk, e away from the camera, h height), mm; the
 template subject (no model), near side R, walking toward +a.
@@ -15,6 +16,7 @@ from gaitflow.stages import label
 from gaitflow.stages.model import FloorFrame
 from test_label_accuracy import walking_frame
 
+from gaitflow.camera import Camera
 from gaitflow.evaluate_label import calibration_record, to_camera
 from gaitflow.markers import MARKER_INDEX
 
@@ -40,16 +42,60 @@ def test_tibia_reach_keeps_a_blob_far_behind_the_heel_from_the_tibia_label() -> 
     assert fr.assign[MARKER_INDEX["R_TIB"]] != 1
 
 
-def test_lone_tracked_tibia_is_still_named() -> None:
-    # Control: the same blob on the tibia's last-frame track keeps its label.
+def _lone_tracked_tibia() -> tuple[label._Frame, label.Geometry, np.ndarray, int]:
+    """One blob, at the near tibia's standing place and on its last-frame track."""
     geo = label.Geometry.from_model(None)
     sho = np.array([2000.0, 0.0, geo.sho_h])
     tib = _near(geo, sho, "TIB")
     fr = walking_frame(np.array([tib]), sho, geo)
     i = MARKER_INDEX["R_TIB"]
     fr.pred[i], fr.sig[i], fr.tracked[i], fr.age[i] = tib, (50.0, 70.0, 50.0), True, 1
+    return fr, geo, sho, i
+
+
+def test_lone_tracked_tibia_is_still_named() -> None:
+    # Control: the same blob on the tibia's last-frame track keeps its label.
+    fr, geo, sho, i = _lone_tracked_tibia()
     label._lower(fr, geo, sho, geo.sho_h, 4.0)
     assert fr.assign[i] == 0
+
+
+def test_a_marker_predicted_outside_the_image_takes_no_blob() -> None:
+    # btk_c3dorg_sample04_Matt frames 170-171: the near leg leaving the view, the tibia wand
+    # already past the image's edge; the tibia label took the ankle's blob. The same blob
+    # as in the control above: on the tibia's track, but the track leads out of view.
+    fr, geo, sho, i = _lone_tracked_tibia()
+    fr.outside = np.zeros(20, bool)
+    fr.outside[i] = True
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[i] == -1
+
+
+def test_beyond_image_projects_the_predictions_with_the_record_camera() -> None:
+    # A level camera 1 m above the floor: floor a = X, e = Z, h = 1000 - Y (mm).
+    ff = FloorFrame.from_record(None, 1000.0)
+    cam = Camera()
+    pred = np.array(
+        [
+            [0.0, 3000.0, 1000.0],  # straight ahead: the image centre
+            [-2500.0, 3000.0, 1000.0],  # 2.5 m to the left at 3 m: beyond the left edge
+            [0.0, 3000.0, -2000.0],  # 2 m below the floor's level: beyond the bottom
+            [0.0, -500.0, 1000.0],  # behind the camera
+            [np.nan, 3000.0, 1000.0],  # unknown
+        ]
+    )
+    np.testing.assert_array_equal(
+        label.beyond_image(pred, 1, ff, cam), [False, True, True, True, True]
+    )
+    # walking toward -a, f = -a: the same points read with the sign of f flipped
+    flipped = pred * np.array([-1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(
+        label.beyond_image(flipped, -1, ff, cam), [False, True, True, True, True]
+    )
+    narrow = Camera(width=100, height=100, cx=50.0, cy=50.0)
+    side = np.array([[-600.0, 3000.0, 1000.0]])  # 73 px left of the centre
+    assert label.beyond_image(side, 1, ff, narrow)[0]
+    assert not label.beyond_image(side, 1, ff, cam)[0]
 
 
 def _far_foot_frame() -> tuple[label._Frame, label.Geometry, np.ndarray]:

@@ -131,14 +131,9 @@ def test_a_bad_camera_document_on_a_frame_is_a_stage_error_naming_the_key() -> N
         calibrate.step(st, {"raw": _raw({**DOC, "calibration_markers": 99})})
 
 
-def test_model_and_label_read_marker_size_and_fps_from_the_record() -> None:
-    record = dataclasses.replace(
-        calibration_record(), camera={**Camera().to_json(), "fps": 15, "marker_diameter_mm": 20}
-    )
-    assert marker_diameter(model.PARAMS.resolve({})["marker_diameter_mm"], record.camera) == 20.0
-    assert marker_diameter(14.0, record.camera) == 14.0
-    assert marker_diameter(0.0, {}) == 25.0
-    mk = Markers3D(
+def _no_blobs() -> Markers3D:
+    """A walking frame without blobs."""
+    return Markers3D(
         header=Markers3D.make_header("cam0", "walk-01", 0, 0),
         centroid=np.zeros((0, 2)),
         marker_radius=np.zeros(0),
@@ -146,10 +141,37 @@ def test_model_and_label_read_marker_size_and_fps_from_the_record() -> None:
         depth=np.zeros((0, 3)),
         position=np.zeros((0, 3, 3)),
     )
+
+
+def test_model_and_label_read_marker_size_and_fps_from_the_record() -> None:
+    record = dataclasses.replace(
+        calibration_record(), camera={**Camera().to_json(), "fps": 15, "marker_diameter_mm": 20}
+    )
+    assert marker_diameter(model.PARAMS.resolve({})["marker_diameter_mm"], record.camera) == 20.0
+    assert marker_diameter(14.0, record.camera) == 14.0
+    assert marker_diameter(0.0, {}) == 25.0
+    mk = _no_blobs()
     for fps_param, expect in ((0.0, 15.0), (60.0, 60.0)):
         st = label.init(label.PARAMS.resolve({"fps": fps_param}))
         st, _ = label.step(st, {"markers": mk, "calibration": record})
         assert st.fps == expect
+
+
+def test_label_takes_the_image_bounds_from_the_record_camera() -> None:
+    mk = _no_blobs()
+    record = dataclasses.replace(calibration_record(), camera=DOC)
+    st, _ = label.step(label.init(label.PARAMS.resolve({})), {"markers": mk, "calibration": record})
+    assert st.sides[4] == OTHER_UNIT
+    off = label.PARAMS.resolve({"view_gate": False})
+    st, _ = label.step(label.init(off), {"markers": mk, "calibration": record})
+    assert st.sides[4] is None
+    st, _ = label.step(
+        label.init(label.PARAMS.resolve({})), {"markers": mk, "calibration": calibration_record()}
+    )
+    assert st.sides[4] is None  # a record without a camera: no bounds, no gate
+    bad = dataclasses.replace(calibration_record(), camera={"depth_intrinsics": {"fx": 1.0}})
+    with pytest.raises(StageError, match=r"label.*camera"):
+        label.step(label.init(label.PARAMS.resolve({})), {"markers": mk, "calibration": bad})
 
 
 def test_session_frames_carry_their_camera_json(tmp_path: Path) -> None:
