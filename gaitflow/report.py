@@ -96,6 +96,39 @@ def knee_cycles(doc: Mapping[str, Any], side: str, min_known: float = 0.5) -> np
     return np.array(out).reshape(-1, 101)
 
 
+def knee_rom_windows(
+    doc: Mapping[str, Any], side: str, period_s: float, min_known: float = 0.9
+) -> np.ndarray:
+    """Knee ROM (max - min, deg) over windows of one stride time, for a side without a
+    complete heel-strike-to-heel-strike cycle.
+
+    The knee angle repeats every stride, so any window of one stride time holds one
+    cycle's maximum and minimum, wherever it starts: a side whose strikes were not all
+    seen (one camera sees a foot's strike only when that foot is near it) still has a
+    ROM. Windows are laid end to end from the first known sample of each run of the
+    knee's time base; one counts when ``min_known`` of its samples are known. Returns (W,).
+    """
+    kt = _arr(doc["knee_flexion_deg"]["time_s"])
+    kd = _arr(doc["knee_flexion_deg"][side])
+    if not (np.isfinite(period_s) and period_s > 0) or not np.isfinite(kd).any():
+        return np.zeros(0)
+    out = []
+    a = float(np.nanmin(kt[np.isfinite(kd)]))
+    end = float(np.nanmax(kt[np.isfinite(kd)]))
+    while a + period_s <= end + 1e-9:
+        sel = (kt >= a) & (kt < a + period_s)
+        k = kd[sel]
+        if len(k) >= 10 and np.isfinite(k).mean() >= min_known:
+            out.append(float(np.nanmax(k) - np.nanmin(k)))
+            a += period_s
+        else:
+            # slide on to the next known sample after the first unknown one
+            nxt = kt[(kt > a) & np.isfinite(kd)]
+            gap = kt[(kt > a) & ~np.isfinite(kd)]
+            a = float(nxt[nxt > gap[0]][0]) if gap.size and (nxt > gap[0]).any() else end
+    return np.array(out)
+
+
 def _cycle_mean(cyc: np.ndarray) -> np.ndarray:
     """Mean over cycles of each point, NaN where no cycle is known there."""
     out = np.full(101, np.nan)
@@ -126,8 +159,10 @@ def _mean_sd(xs: Sequence[float | None]) -> tuple[float, float, int]:
 def side_summary(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
     """Per side: steps, means of the spatio-temporal lists, stance/swing %, knee ROM.
 
-    Knee ROM is the mean over complete cycles of (max - min) knee flexion; stance % is the
-    mean stance time over the mean stride time (stance + swing).
+    Knee ROM is the mean over complete cycles of (max - min) knee flexion, or, for a side
+    without one, over windows of one stride time (:func:`knee_rom_windows`; the stride time
+    from the cadence); ``rom_windows`` counts those. Stance % is the mean stance time over
+    the mean stride time (stance + swing).
     """
     st = doc["spatiotemporal"]
     out: dict[str, dict[str, float]] = {}
@@ -140,6 +175,11 @@ def side_summary(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
         # ROM and peak from the cycles known over at least 90 % of their points
         cyc = knee_cycles(doc, s, min_known=0.9)
         rom = float(np.mean(np.nanmax(cyc, 1) - np.nanmin(cyc, 1))) if len(cyc) else float("nan")
+        windows = np.zeros(0)
+        if not len(cyc):
+            cadence = st.get("cadence_steps_per_min") or float("nan")
+            windows = knee_rom_windows(doc, s, 120.0 / cadence if cadence > 0 else float("nan"))
+            rom = float(np.mean(windows)) if len(windows) else rom
         peak = float(np.mean(np.nanmax(cyc, axis=1))) if len(cyc) else float("nan")
         total = stance + swing
         out[s] = {
@@ -159,6 +199,7 @@ def side_summary(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
             "knee_rom_deg": rom,
             "knee_peak_deg": peak,
             "cycles": float(len(cyc)),
+            "rom_windows": float(len(windows)),
         }
     return out
 

@@ -253,7 +253,8 @@ def summary_table(outcomes: Iterable[TrialOutcome], title: str = "gait summary")
                     d["stance_pct"],
                     d["swing_pct"],
                     d["knee_rom_deg"],
-                    int(d["cycles"]),
+                    f"{int(d['cycles'])}"
+                    + (f" ({int(d['rom_windows'])}w)" if d["rom_windows"] else ""),
                 ]
             )
     cols = [
@@ -270,7 +271,8 @@ def summary_table(outcomes: Iterable[TrialOutcome], title: str = "gait summary")
     ]
     note = (
         "knee ROM: mean over the gait cycles whose knee angle is known over >= 90 % of the "
-        "cycle ('knee cycles'); '-' = no such cycle"
+        "cycle ('knee cycles'); without one, over windows of one stride time known as well "
+        "('(2w)': two windows); '-' = neither"
     )
     return format_table(title, cols, rows) + "\n" + note
 
