@@ -96,22 +96,23 @@ def knee_cycles(doc: Mapping[str, Any], side: str, min_known: float = 0.5) -> np
     return np.array(out).reshape(-1, 101)
 
 
-def knee_rom_windows(
+def knee_windows(
     doc: Mapping[str, Any], side: str, period_s: float, min_known: float = 0.9
 ) -> np.ndarray:
-    """Knee ROM (max - min, deg) over windows of one stride time, for a side without a
-    complete heel-strike-to-heel-strike cycle.
+    """Knee flexion minimum and maximum (deg) over windows of one stride time, for a side
+    without a complete heel-strike-to-heel-strike cycle.
 
     The knee angle repeats every stride, so any window of one stride time holds one
     cycle's maximum and minimum, wherever it starts: a side whose strikes were not all
     seen (one camera sees a foot's strike only when that foot is near it) still has a
     ROM. Windows are laid end to end from the first known sample of each run of the
-    knee's time base; one counts when ``min_known`` of its samples are known. Returns (W,).
+    knee's time base; one counts when ``min_known`` of its samples are known. Returns (W, 2)
+    = (min, max) per window.
     """
     kt = _arr(doc["knee_flexion_deg"]["time_s"])
     kd = _arr(doc["knee_flexion_deg"][side])
     if not (np.isfinite(period_s) and period_s > 0) or not np.isfinite(kd).any():
-        return np.zeros(0)
+        return np.zeros((0, 2))
     out = []
     a = float(np.nanmin(kt[np.isfinite(kd)]))
     end = float(np.nanmax(kt[np.isfinite(kd)]))
@@ -119,14 +120,14 @@ def knee_rom_windows(
         sel = (kt >= a) & (kt < a + period_s)
         k = kd[sel]
         if len(k) >= 10 and np.isfinite(k).mean() >= min_known:
-            out.append(float(np.nanmax(k) - np.nanmin(k)))
+            out.append((float(np.nanmin(k)), float(np.nanmax(k))))
             a += period_s
         else:
             # slide on to the next known sample after the first unknown one
             nxt = kt[(kt > a) & np.isfinite(kd)]
             gap = kt[(kt > a) & ~np.isfinite(kd)]
             a = float(nxt[nxt > gap[0]][0]) if gap.size and (nxt > gap[0]).any() else end
-    return np.array(out)
+    return np.array(out).reshape(-1, 2)
 
 
 def _cycle_mean(cyc: np.ndarray) -> np.ndarray:
@@ -160,9 +161,9 @@ def side_summary(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
     """Per side: steps, means of the spatio-temporal lists, stance/swing %, knee ROM.
 
     Knee ROM is the mean over complete cycles of (max - min) knee flexion, or, for a side
-    without one, over windows of one stride time (:func:`knee_rom_windows`; the stride time
+    without one, over windows of one stride time (:func:`knee_windows`; the stride time
     from the cadence); ``rom_windows`` counts those. Stance % is the mean stance time over
-    the mean stride time (stance + swing).
+    the mean stride time (stance + swing). The peak comes from the same cycles or windows.
     """
     st = doc["spatiotemporal"]
     out: dict[str, dict[str, float]] = {}
@@ -172,15 +173,18 @@ def side_summary(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
         stride, stride_sd, n_stride = _mean_sd(d["stride_length_mm"])
         stance, stance_sd, _ = _mean_sd(d["stance_s"])
         swing, swing_sd, _ = _mean_sd(d["swing_s"])
-        # ROM and peak from the cycles known over at least 90 % of their points
+        # ROM and peak from the cycles known over at least 90 % of their points, else from
+        # windows of one stride time
         cyc = knee_cycles(doc, s, min_known=0.9)
         rom = float(np.mean(np.nanmax(cyc, 1) - np.nanmin(cyc, 1))) if len(cyc) else float("nan")
-        windows = np.zeros(0)
+        peak = float(np.mean(np.nanmax(cyc, axis=1))) if len(cyc) else float("nan")
+        windows = np.zeros((0, 2))
         if not len(cyc):
             cadence = st.get("cadence_steps_per_min") or float("nan")
-            windows = knee_rom_windows(doc, s, 120.0 / cadence if cadence > 0 else float("nan"))
-            rom = float(np.mean(windows)) if len(windows) else rom
-        peak = float(np.mean(np.nanmax(cyc, axis=1))) if len(cyc) else float("nan")
+            windows = knee_windows(doc, s, 120.0 / cadence if cadence > 0 else float("nan"))
+            if len(windows):
+                rom = float(np.mean(windows[:, 1] - windows[:, 0]))
+                peak = float(np.mean(windows[:, 1]))
         total = stance + swing
         out[s] = {
             "steps": float(sum(1 for c in doc.get("cycles", []) if c["side"] == s)),
@@ -249,7 +253,7 @@ def cycle_figure(doc: Mapping[str, Any], norm: Mapping[str, Any]) -> str:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", fontsize=8, frameon=False)
         if not len(cyc):
-            ax.text(50, 30, "no cycle with the knee seen", ha="center", color="0.4")
+            ax.text(50, 30, "no complete cycle with the knee seen", ha="center", color="0.4")
     axes[0].set_ylabel("knee flexion, deg")
     fig.tight_layout()
     out = _svg(fig)
@@ -392,6 +396,14 @@ def render_html(doc: Mapping[str, Any], norm: Mapping[str, Any] | None = None) -
         "<table><tr><th>parameter (mean ± SD)</th><th class='L'>Left</th>"
         f"<th class='R'>Right</th></tr>{body}</table>"
     )
+    for s in SIDES:
+        if summ[s]["rom_windows"]:
+            n = int(summ[s]["rom_windows"])
+            parts.append(
+                f"<p class='small'>{SIDE_NAME[s]} knee ROM and peak: no complete gait cycle "
+                f"with the knee seen, so from {n} window{'s' if n != 1 else ''} of one stride "
+                "time (120 / cadence) with the knee known over 90 % of it.</p>"
+            )
     parts.append(
         f"<table><tr><th>both sides</th><th>value</th></tr>"
         f"<tr><td>cadence, steps/min</td><td>{_f(st.get('cadence_steps_per_min'), 1)}</td></tr>"
