@@ -428,9 +428,9 @@ class LabelState:
     labelled: int = 0
     foot: np.ndarray | None = None  # (3,) learned ANK-HEE, ANK-TOE, HEE-TOE, mm
     foot_n: int = 0
-    # (calibration, model, FloorFrame, Geometry): the side inputs the floor frame and the
-    # geometry were derived from, and those (derived once per side input, not per frame).
-    # (calibration, model, their floor frame, geometry, camera of the record or None)
+    # (calibration, model, FloorFrame, Geometry, Camera or None): the side inputs, and what
+    # is derived from them once per side input, not per frame (the camera: the record's,
+    # for ``view_gate``).
     sides: tuple[Any, Any, FloorFrame, Geometry, Camera | None] | None = None
     # ((20,) camera Z mm, (20,) frame) of each marker's last published position
     leg_depth: tuple[np.ndarray, np.ndarray] | None = None
