@@ -747,9 +747,7 @@ def label_frame(
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
     dt = dt_frames / st.fps
-    pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3, 3)
-    # A mode that found no layer falls back to the normal mode's position.
-    pos = np.where(np.isfinite(pos), pos, pos[:, :1, :])
+    pos = fill_modes(np.asarray(pos, dtype=np.float64).reshape(-1, 3, 3))
     fm = ff.to_floor(pos) if len(pos) else np.zeros((0, 3, 3))
     floor = fm[:, 0]
     ok = np.isfinite(floor).all(axis=1) & ~_huge(radius, len(floor))
@@ -1577,6 +1575,25 @@ def _bottom_continues(own: np.ndarray, bottom: np.ndarray, last: np.ndarray) -> 
         return np.abs(bottom - last) + LAYER_GAIN_MM < np.abs(own - last)
 
 
+def fill_modes(pos: np.ndarray) -> np.ndarray:
+    """Each blob's position under every cluster mode, a mode without a layer filled in.
+
+    A mode that found no layer takes the normal mode's position; where the normal mode
+    found none either, the first mode (in ``CLUSTER_MODES`` order) that did. An arm in
+    front of the pelvis can leave the normal mode without a layer while the bottom mode
+    has the hip's: such a blob was left out of the search, and its label went to another
+    blob. A blob without any layer stays NaN.
+
+    pos : (N, 3, 3) [blob, mode, xyz]. Returns a new (N, 3, 3) array.
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    if not len(pos):
+        return pos.copy()
+    found = np.isfinite(pos).all(axis=2)
+    first = pos[np.arange(len(pos)), np.argmax(found, axis=1)]
+    return np.where(found[:, :, None], pos, first[:, None, :])
+
+
 def surface_point(position: np.ndarray, surface_offset_mm: float) -> np.ndarray:
     """Marker centres moved back along their viewing rays to the surface they sit on.
 
@@ -1613,7 +1630,7 @@ def _output(
     ``LAYER_MAX_AGE`` frames) better by ``LAYER_GAIN_MM``: a hand or the other leg passing
     in front makes the nearest layer tens of mm too near for a few frames (departure).
     """
-    pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
+    pos = fill_modes(np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3))
     cen = np.asarray(mk.centroid, dtype=np.float64).reshape(-1, 2)
     position = np.full((20, 3), np.nan)
     pixel = np.full((20, 2), np.nan)
@@ -1629,10 +1646,7 @@ def _output(
                 continue
             if _bottom_continues(pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2], zp[k]):
                 mode[k] = BOTTOM
-    xyz = pos[b, mode[ii]]
-    # The label's own mode found no layer: normal mode.
-    xyz = np.where(np.isfinite(xyz).all(axis=1)[:, None], xyz, pos[b, 0])
-    position[ii] = xyz
+    position[ii] = pos[b, mode[ii]]
     if side_on is not None:
         k = np.flatnonzero(side_on & (assign >= 0))
         position[k] = surface_point(position[k], mk.surface_offset_mm)

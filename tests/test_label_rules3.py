@@ -159,3 +159,41 @@ def test_untracked_far_foot_does_not_take_the_near_heel_and_toe_at_a_pass_start(
     label._lower(fr, geo, sho, geo.sho_h, 4.0)
     assert fr.assign[MARKER_INDEX["L_HEE"]] == -1 and fr.assign[MARKER_INDEX["L_TOE"]] == -1
     assert [fr.assign[MARKER_INDEX[f"R_{s}"]] for s in sites] == [0, 1, 2, 3]
+
+
+def test_fill_modes_takes_another_mode_where_the_normal_one_found_no_layer() -> None:
+    nan = np.nan
+    pos = np.array(
+        [
+            [[1.0, 2.0, 3.0], [nan, nan, nan], [7.0, 8.0, 9.0]],  # top missing: normal's
+            [[nan, nan, nan], [nan, nan, nan], [4.0, 5.0, 6.0]],  # only bottom: everywhere
+            [[nan, nan, nan], [nan, nan, nan], [nan, nan, nan]],  # no layer at all
+        ]
+    )
+    out = label.fill_modes(pos)
+    np.testing.assert_array_equal(out[0], [[1, 2, 3], [1, 2, 3], [7, 8, 9]])
+    np.testing.assert_array_equal(out[1], [[4, 5, 6]] * 3)
+    assert np.isnan(out[2]).all()
+    assert np.isnan(pos[1, 0]).all()  # the input is left alone
+    assert label.fill_modes(np.zeros((0, 3, 3))).shape == (0, 3, 3)
+
+
+def test_a_hip_blob_without_a_normal_layer_still_takes_the_hip_label() -> None:
+    # btk_PiG_Motion3_FF seed 1 frame 42: the arm in front of the hip left the normal mode
+    # without a layer, while the bottom mode had the hip's; the blob was left out of every
+    # search and the hip label went to the far PSI's blob.
+    geo = label.Geometry.from_model(None)
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    sho = np.array([0.3 * ff.length, 0.0, geo.sho_h])
+    sites = ("SHO", "HIP", "THI", "KNE", "TIB", "ANK", "HEE", "TOE")
+    q = np.array([_near(geo, sho, s) for s in sites])
+    pos = np.repeat(to_camera(q)[:, None, :], 3, axis=1)
+    hip = sites.index("HIP")
+    for normal in (True, False):
+        p = pos.copy()
+        if not normal:
+            p[hip, :2] = np.nan  # normal (and top) mode: no layer; bottom: the hip
+        st = label.init(label.PARAMS.resolve({}))
+        st, assign = label.label_frame(st, p, 0, ff, geo)
+        assert st.direction == 1
+        assert assign[MARKER_INDEX["R_HIP"]] == hip
