@@ -987,6 +987,10 @@ class Contact:
     heel_pos: float
     start: float
     stop: float
+    # Where the toe's speed-up to this toe off began, when the toe's flat range locked with
+    # the toe already moving (a clearance dip as low as the stance, or a filled gap); NaN
+    # otherwise. drop_events_in_gaps judges the toe off by the samples seen since then.
+    toe_off_from: float = float("nan")
 
 
 def _speed(t: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -1118,10 +1122,11 @@ def foot_contacts(
                 if r.right_locked:
                     rise = float(t[planted])
         next_left = hranges[i + 1].left if i + 1 < len(hranges) else n
-        to = float("nan")
+        to = to_from = float("nan")
         for q in tr.ranges:
             if q.right < r.left or q.left > r.right or not q.right_locked:
                 continue
+            since = float("nan")
             if not (r.left <= q.right < next_left and q.right >= r.right - 1):
                 continue
             j = q.right
@@ -1130,6 +1135,10 @@ def foot_contacts(
                 stop = min(next_left - 1, n - 1)
                 with np.errstate(invalid="ignore"):
                     rest = np.flatnonzero(vt[j:stop] > to_speed_frac * ref)
+                    fast = vt[q.left : j + 1] > to_speed_frac * ref
+                if fast[-1]:
+                    slow = np.flatnonzero(~fast)
+                    since = float(t[q.left + (int(slow[-1]) + 1 if slow.size else 0)])
                 j = j + int(rest[0]) if rest.size else max(j, stop)
                 if not vt[j] > to_speed_frac * ref:
                     continue  # the toe never left inside this stride: no toe off
@@ -1137,21 +1146,28 @@ def foot_contacts(
                     # the toe sped up while unseen (its range was locked before a gap too
                     # long to fill): the first sample after the gap is not the toe off
                     continue
-            to = float(t[j])
+            to, to_from = float(t[j]), since
         # the heel stands still from its strike to its rise, then rolls forward with the foot
         pos = np.asarray(heel_prog[r.left : planted + 1], dtype=float)
         pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")
-        out.append(Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right])))
+        out.append(
+            Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right]), to_from)
+        )
     return out
 
 
-def _in_gap(t: np.ndarray, seen: np.ndarray, when: float, max_s: float) -> bool:
-    """Whether ``when`` falls in a run of unseen samples spanning more than ``max_s``."""
-    before = np.flatnonzero(seen & (t <= when))
-    after = np.flatnonzero(seen & (t >= when))
-    if not before.size or not after.size:
-        return True  # beyond the last (or before the first) sample seen
-    return float(t[after[0]] - t[before[-1]]) > max_s
+def _in_gap(
+    t: np.ndarray, seen: np.ndarray, when: float, max_s: float, since: float | None = None
+) -> bool:
+    """Whether ``when`` (or any time from ``since`` to ``when``) falls in a run of unseen
+    samples spanning more than ``max_s``, or beyond the first or last sample seen."""
+    ts = t[seen]
+    start = when if since is None else since
+    lo = max(int(np.searchsorted(ts, start, side="right")) - 1, 0)
+    part = ts[lo : int(np.searchsorted(ts, when, side="left")) + 1]
+    if not part.size or part[0] > start or part[-1] < when:
+        return True
+    return bool((np.diff(part) > max_s).any())
 
 
 def drop_events_in_gaps(
@@ -1173,7 +1189,8 @@ def drop_events_in_gaps(
     for c in contacts:
         if _finite(c.heel_strike) and _in_gap(t, heel_seen, c.heel_strike, max_s):
             c = replace(c, heel_strike=float("nan"))
-        if _finite(c.toe_off) and _in_gap(t, toe_seen, c.toe_off, max_s):
+        since = c.toe_off_from if _finite(c.toe_off_from) else None
+        if _finite(c.toe_off) and _in_gap(t, toe_seen, c.toe_off, max_s, since):
             c = replace(c, toe_off=float("nan"))
         out.append(c)
     return out

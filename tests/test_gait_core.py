@@ -235,6 +235,37 @@ def test_a_toe_off_hidden_after_its_lock_is_unknown_not_the_first_sample_after()
     ]
 
 
+def test_a_toe_off_whose_speed_up_began_in_a_gap_is_unknown():
+    # btk_FunctionalWalk (held out), the right toe at a pass's end: unseen for 0.23 s while
+    # it left the floor, the gap filled by a curve, then seen in flight with a clearance
+    # dip as low as the stance. Alg. 6 locked the toe's range at the dip, 0.25 s into the
+    # swing, and the toe off came at the lock. The toe is already moving at that lock:
+    # the run of speed began in the gap, so the toe off is unknown.
+    t, hh, th, prog, _, to_true = synthetic_walk(0.2)
+    late = np.zeros_like(t, dtype=bool)
+    for x in to_true:
+        late |= (t >= x) & (t < x + 0.2)
+    th = np.where(late, 30.0, th)  # the toe skims the floor for 0.2 s into its swing
+    cs = gc.foot_contacts(t, hh, th, prog, prog, "L")
+    c = min(cs, key=lambda c: abs(c.toe_off - to_true[1]) if np.isfinite(c.toe_off) else 9.0)
+    assert c.toe_off > to_true[1] + 0.1  # at the lock, in flight
+    assert abs(c.toe_off_from - to_true[1]) <= 1 / 30  # where the speed-up began
+    seen = np.ones(len(t), bool)
+    (kept,) = gc.drop_events_in_gaps([c], t, seen, seen, 0.15)
+    assert kept == c  # every sample seen: the event stands
+    seen[(t > to_true[1] - 0.1) & (t < to_true[1] + 0.1)] = False  # the lift-off unseen
+    (out,) = gc.drop_events_in_gaps([c], t, seen, seen, 0.15)
+    assert np.isnan(out.toe_off)
+    # where the plain walk's toe ranges lock just after the lift-off, the run's start is
+    # the lift-off too
+    plain = gc.foot_contacts(t, hh, synthetic_walk(0.2)[2], prog, prog, "L")
+    since = [c.toe_off_from for c in plain if np.isfinite(c.toe_off_from)]
+    assert since
+    for x, c in zip(since, [c for c in plain if np.isfinite(c.toe_off_from)], strict=True):
+        assert x <= c.toe_off
+        assert np.min(np.abs(np.array(to_true) - x)) <= 1 / 30
+
+
 def test_spatiotemporal_from_synthetic_walk():
     period, stride = 1.1, 1200.0
     contacts = {}
