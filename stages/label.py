@@ -747,7 +747,9 @@ def label_frame(
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
     dt = dt_frames / st.fps
-    pos = fill_modes(np.asarray(pos, dtype=np.float64).reshape(-1, 3, 3))
+    pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3, 3)
+    whole = np.isfinite(pos[:, 0]).all(axis=1)  # the normal mode found a layer
+    pos = fill_modes(pos)
     fm = ff.to_floor(pos) if len(pos) else np.zeros((0, 3, 3))
     floor = fm[:, 0]
     ok = np.isfinite(floor).all(axis=1) & ~_huge(radius, len(floor))
@@ -799,7 +801,11 @@ def label_frame(
         else:
             st = _end_shoulder(st, frame_idx)
     if st.sho_x is None:
-        sho_blob = _acquire_shoulder(top, ok, band, H)
+        # A pass's first shoulder, and the body blobs below it, only from blobs whose normal
+        # mode found a layer: one without is at best half seen (at the image's edge, behind
+        # an arm), and with such blobs as support the far shoulder peeking over the near
+        # one was taken a few frames before the near one appeared.
+        sho_blob = _acquire_shoulder(top, ok & whole, band & whole, H)
         if sho_blob < 0:
             return replace(st, frame=frame_idx, frames=st.frames + 1, prev_q=floor), assign
         x = np.concatenate([top[sho_blob], np.zeros(3)])

@@ -185,7 +185,7 @@ def test_a_hip_blob_without_a_normal_layer_still_takes_the_hip_label() -> None:
     geo = label.Geometry.from_model(None)
     ff = FloorFrame.from_record(calibration_record(), 800.0)
     sho = np.array([0.3 * ff.length, 0.0, geo.sho_h])
-    sites = ("SHO", "HIP", "THI", "KNE", "TIB", "ANK", "HEE", "TOE")
+    sites = ("SHO", "PSI", "HIP", "ASI", "THI", "KNE", "TIB", "ANK", "HEE", "TOE")
     q = np.array([_near(geo, sho, s) for s in sites])
     pos = np.repeat(to_camera(q)[:, None, :], 3, axis=1)
     hip = sites.index("HIP")
@@ -197,3 +197,22 @@ def test_a_hip_blob_without_a_normal_layer_still_takes_the_hip_label() -> None:
         st, assign = label.label_frame(st, p, 0, ff, geo)
         assert st.direction == 1
         assert assign[MARKER_INDEX["R_HIP"]] == hip
+
+
+def test_a_first_shoulder_needs_support_seen_whole() -> None:
+    # bz_HC002D at a 2.0 m walking line, frame 20: at the pass's start a body blob at the
+    # image's edge (no normal-mode layer, only the bottom mode's) made up the three body
+    # blobs the first shoulder needs below it, and the far shoulder peeking over the near
+    # one was taken for the near shoulder four frames before the near one appeared.
+    geo = label.Geometry.from_model(None)
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    sho = np.array([0.3 * ff.length, 0.0, geo.sho_h])
+    sites = ("SHO", "PSI", "HIP", "ASI")
+    pos = np.repeat(to_camera(np.array([_near(geo, sho, s) for s in sites]))[:, None, :], 3, 1)
+    for whole in (True, False):
+        p = pos.copy()
+        if not whole:
+            p[sites.index("ASI"), :2] = np.nan  # half seen: the bottom mode's layer only
+        st, assign = label.label_frame(label.init(label.PARAMS.resolve({})), p, 0, ff, geo)
+        assert (assign[MARKER_INDEX["R_SHO"]] == 0) == whole
+        assert (st.sho_x is not None) == whole
