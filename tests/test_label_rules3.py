@@ -178,23 +178,27 @@ def test_fill_modes_takes_another_mode_where_the_normal_one_found_no_layer() -> 
     assert label.fill_modes(np.zeros((0, 3, 3))).shape == (0, 3, 3)
 
 
+def _first_frame(sites: tuple[str, ...], half_seen: str | None) -> tuple:
+    """label_frame on a fresh state: the template subject's near-side ``sites`` standing
+    at their offsets, walking toward +a; ``half_seen``'s blob has no normal (or top) mode
+    layer, only the bottom mode's. Returns (state, assign)."""
+    geo = label.Geometry.from_model(None)
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    sho = np.array([0.3 * ff.length, 0.0, geo.sho_h])
+    pos = np.repeat(to_camera(np.array([_near(geo, sho, s) for s in sites]))[:, None, :], 3, 1)
+    if half_seen is not None:
+        pos[sites.index(half_seen), :2] = np.nan
+    return label.label_frame(label.init(label.PARAMS.resolve({})), pos, 0, ff, geo)
+
+
 def test_a_hip_blob_without_a_normal_layer_still_takes_the_hip_label() -> None:
     # btk_PiG_Motion3_FF seed 1 frame 42: the arm in front of the hip left the normal mode
     # without a layer, while the bottom mode had the hip's; the blob was left out of every
     # search and the hip label went to the far PSI's blob.
-    geo = label.Geometry.from_model(None)
-    ff = FloorFrame.from_record(calibration_record(), 800.0)
-    sho = np.array([0.3 * ff.length, 0.0, geo.sho_h])
     sites = ("SHO", "PSI", "HIP", "ASI", "THI", "KNE", "TIB", "ANK", "HEE", "TOE")
-    q = np.array([_near(geo, sho, s) for s in sites])
-    pos = np.repeat(to_camera(q)[:, None, :], 3, axis=1)
     hip = sites.index("HIP")
     for normal in (True, False):
-        p = pos.copy()
-        if not normal:
-            p[hip, :2] = np.nan  # normal (and top) mode: no layer; bottom: the hip
-        st = label.init(label.PARAMS.resolve({}))
-        st, assign = label.label_frame(st, p, 0, ff, geo)
+        st, assign = _first_frame(sites, None if normal else "HIP")
         assert st.direction == 1
         assert assign[MARKER_INDEX["R_HIP"]] == hip
 
@@ -204,15 +208,7 @@ def test_a_first_shoulder_needs_support_seen_whole() -> None:
     # image's edge (no normal-mode layer, only the bottom mode's) made up the three body
     # blobs the first shoulder needs below it, and the far shoulder peeking over the near
     # one was taken for the near shoulder four frames before the near one appeared.
-    geo = label.Geometry.from_model(None)
-    ff = FloorFrame.from_record(calibration_record(), 800.0)
-    sho = np.array([0.3 * ff.length, 0.0, geo.sho_h])
-    sites = ("SHO", "PSI", "HIP", "ASI")
-    pos = np.repeat(to_camera(np.array([_near(geo, sho, s) for s in sites]))[:, None, :], 3, 1)
     for whole in (True, False):
-        p = pos.copy()
-        if not whole:
-            p[sites.index("ASI"), :2] = np.nan  # half seen: the bottom mode's layer only
-        st, assign = label.label_frame(label.init(label.PARAMS.resolve({})), p, 0, ff, geo)
+        st, assign = _first_frame(("SHO", "PSI", "HIP", "ASI"), None if whole else "ASI")
         assert (assign[MARKER_INDEX["R_SHO"]] == 0) == whole
         assert (st.sho_x is not None) == whole
