@@ -44,7 +44,7 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
    track; a lone far blob only on last frame's track, and not when the other site's
    last-frame track lies nearer it in (forward, height)); ambiguity is judged on the
-   joint hypotheses; a lone near foot marker needs a
+   joint hypotheses, for the near labels and the far ones alike; a lone near foot marker needs a
    fresh track. Foot tracks widen with the time unseen (``FOOT_SPEED_SIG``: swing onset);
    an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims;
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
@@ -632,6 +632,21 @@ def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float)
     other = (T[m] != T) & (T < K)  # (M, r): the slot holds another blob
     alt = np.where(other, cost[:, None], np.inf).min(axis=0)
     return ((T[m] < K) & (alt - cost[m] >= margin)).tolist()
+
+
+def _far_unambiguous(
+    total: np.ndarray, T2: np.ndarray, j: int, K: int, margin: float
+) -> list[bool]:
+    """Per slot of the best far completion ``j``: is every joint hypothesis giving the slot
+    another blob clearly worse (by ``margin``)?
+
+    ``total`` (R, A2): near hypothesis by far completion. Each far completion counts at its
+    best near hypothesis, not only at the chosen one: where the near labels are in doubt,
+    a far completion of a near hypothesis about as good can give the far heel or toe
+    another blob (the near heel's, when the chosen near hypothesis left it missing or gave
+    it to the ankle), and such a far label is as ambiguous as a near one.
+    """
+    return _unambiguous(total.min(axis=0), T2, j, K, margin)
 
 
 class _Hyp:
@@ -1353,7 +1368,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                     if k > 0 and lone_foot and not (fr.tracked[i] and fr.age[i] == 1):
                         continue
                     chosen[i] = int(tf[k])
-            keep2 = _unambiguous(total[r], T2, j, K, fr.ambiguity)
+            keep2 = _far_unambiguous(total, T2, j, K, fr.ambiguity)
             # A lone far-foot blob is heel or toe only if last frame's track says which.
             lone = int((tp[:2] < K).sum()) == 1
             if tp[2] < K:

@@ -120,8 +120,9 @@ PINNED = {
 # blobs out): 7 more hip labels (L_HIP 53 -> 59, R_HIP 56 -> 57, all right by the walk's
 # truth, frame 111); and after the foot-track sigma and the far heel/toe track claims: wrong
 # labels 3 -> 1 of ~1170 (frame 31: R_ANK on the heel's blob is now R_HEE), 8 fewer foot
-# labels.
-PINNED_COUNTS = [60, 0, 0, 59, 60, 60, 60, 58, 115, 115, 60, 0, 0, 57, 60, 57, 60, 55, 113, 116]
+# labels; and after far labels were judged over every near hypothesis (_far_unambiguous):
+# one far toe label fewer, one far heel label more, the same one wrong label (frame 23).
+PINNED_COUNTS = [60, 0, 0, 59, 60, 60, 60, 58, 116, 114, 60, 0, 0, 57, 60, 57, 60, 55, 113, 116]
 
 
 def test_labelling_pinned_on_a_noisy_walk_with_occlusions(subject: SubjectModel) -> None:  # noqa: F811
@@ -138,3 +139,20 @@ def test_labelling_pinned_on_a_noisy_walk_with_occlusions(subject: SubjectModel)
     for n, want in PINNED.items():
         assert np.asarray(blobs[n]).tolist() == want, f"frame {n}"
     assert (np.array(blobs) >= 0).sum(axis=0).tolist() == PINNED_COUNTS
+
+
+def test_far_labels_are_judged_over_every_near_hypothesis() -> None:
+    K = 3  # blobs 0..2, 3 = missing
+    # far completions (HEE, TOE)
+    T2 = np.array([[0, 1], [2, 1], [3, 3]])
+    # near hypothesis 0 (the best) completes best with far HEE on blob 0; near hypothesis 1
+    # (1 worse) completes best with far HEE on blob 2
+    total = np.array([[1.0, 9.0, 12.0], [8.0, 2.0, 12.0]])
+    # judged at near hypothesis 0 alone the far heel was clear (9 - 1 >= 4) ...
+    assert label._unambiguous(total[0], T2, 0, K, 4.0) == [True, True]
+    # ... but blob 2 as far heel costs only 1 more jointly: the heel is dropped; the toe
+    # takes blob 1 in both and stays
+    assert label._far_unambiguous(total, T2, 0, K, 4.0) == [False, True]
+    # a far completion clearly worse under every near hypothesis keeps both
+    total[1, 1] = 6.0
+    assert label._far_unambiguous(total, T2, 0, K, 4.0) == [True, True]
