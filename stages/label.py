@@ -46,7 +46,8 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    last-frame track lies nearer it in (forward, height)); ambiguity is judged on the
    joint hypotheses, for the near labels and the far ones alike; a lone near foot marker needs a
    fresh track. Foot tracks widen with the time unseen (``FOOT_SPEED_SIG``: swing onset);
-   an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims;
+   an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims,
+   and the thigh wand for one the knee's fresh track claims;
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
    limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
    ANK; THI and TIB on their segments, ``_on_segment``, up to the subject's standing
@@ -245,8 +246,9 @@ HIP_DROP = 0.25  # share of the standing ASI/PSI-to-HIP drop the hip keeps below
 # by it times the time since last seen (see _predictions).
 FOOT_SITES = [SITES.index(s) for s in ("ANK", "HEE", "TOE")]
 FOOT_SPEED_SIG = 2400.0
-# A far heel or toe without a fresh track pays this for a blob that the same site's fresh
-# near track predicts within CLAIM_SIG2 (squared sigma; see _lower).
+# Track claims (squared sigma; see _lower): a far heel or toe without a fresh track pays a
+# miss for a blob that the same site's fresh near track predicts within CLAIM_SIG2, and the
+# thigh wand for a blob that the knee's fresh track predicts so (sagittal plane).
 CLAIM_SIG2 = 4.0
 # A far heel or toe without a fresh track pays a miss unless it lies this much (mm) deeper
 # than the near foot's mean depth (20 mm with a fresh track; see _lower).
@@ -551,10 +553,12 @@ def _fresh(fr: _Frame, idx: int) -> bool:
     return bool(fr.tracked[idx] and fr.age[idx] <= 2)
 
 
-def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
-    """Squared-sigma distance of candidate blobs (K,) to marker ``idx``'s prediction."""
+def _unary(fr: _Frame, idx: int, cand: np.ndarray, axes: list[int] | None = None) -> np.ndarray:
+    """Squared-sigma distance of candidate blobs (K,) to marker ``idx``'s prediction, over
+    the floor axes ``axes`` (default all three; [0, 2]: forward and height, the sagittal
+    plane, where a blob's depth may be a layer in front of it)."""
     d = (fr.pos(idx)[cand] - fr.pred[idx]) / fr.sig[idx]
-    return (d**2).sum(axis=1)
+    return (d[:, axes if axes is not None else slice(None)] ** 2).sum(axis=1)
 
 
 def _sagittal(fr: _Frame, idx: int, cand: np.ndarray) -> float:
@@ -1414,6 +1418,16 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     if hip_blob >= 0:
         # The pelvis search has judged the hip's own fit: here only the leg may overrule it.
         h3.U[4, K2 - 1] = 0.0
+    if _fresh(fr, kne_i) and _fresh(fr, thi_i):
+        # Track claim: the thigh wand pays a miss for a blob that the knee's fresh track
+        # predicts within 2 sigma in the sagittal plane, and better than the thigh's does.
+        # A thigh wand 50-70 mm above the knee, hidden behind the swinging arm, otherwise
+        # took the knee's blob whenever the knee's depth there was the arm's (100+ mm too
+        # near: the knee's shank length and depth then cost more than the thigh's miss).
+        # One way only: a thigh track on the knee's blob would claim it back and hold the
+        # swap (seen on the ``high`` set-up).
+        u_kne, u_thi = (_unary(fr, i, lc, [0, 2]) for i in (kne_i, thi_i))
+        h3.U[1, :K2] += np.where((u_kne < CLAIM_SIG2) & (u_kne < u_thi), MISS_COST, 0.0)
     pr = h3.present
     thigh, shank = geo.d("HIP", "KNE"), geo.d("KNE", "ANK")
     anchors = {}

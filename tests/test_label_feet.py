@@ -1,4 +1,5 @@
-"""Label stage, legs: foot-track acceleration sigma, far heel/toe track claims, knee ring.
+"""Label stage, legs: foot-track acceleration sigma, far heel/toe and knee track claims,
+knee ring.
 
 Literal positions from simulated walks where the earlier stage went wrong (rounded, mm, in the
 oriented floor frame the foot search works in: forward along the walking direction, e away
@@ -176,3 +177,48 @@ def test_crouched_knee_is_left_to_the_limb_search() -> None:
     assert a[MARKER_INDEX["R_TIB"]] in (5, -1)
     assert a[MARKER_INDEX["R_ANK"]] != 5
     assert a[MARKER_INDEX["R_KNE"]] in (10, -1)
+
+
+def test_the_knees_fresh_track_keeps_its_blob_from_a_hidden_thigh_wand() -> None:
+    # bz_HC031A (a walk of ../shared/gaitdata, not bundled), frame 75, near side R: the hip
+    # and the thigh wand (96 mm above the knee) hidden behind the swinging arm; the knee's
+    # blob is where its track says in forward and height, but its depth is the arm's, 126 mm
+    # too near. The knee's shank length and depth then cost more than the thigh's miss, and
+    # the thigh label took the knee's blob; the knee's fresh track now claims it.
+    blobs = [
+        [2275.0, -141.0, 1042.0],  # 0 R_SHO
+        [2033.0, 38.0, 230.0],  # 1
+        [2208.0, -106.0, 773.0],  # 2
+        [2285.0, -120.0, 148.0],  # 3 R_TIB
+        [2118.0, 49.0, 97.0],  # 4
+        [2272.0, -68.0, 57.0],  # 5 R_ANK
+        [2216.0, -39.0, 32.0],  # 6 R_HEE
+        [2381.0, -62.0, 44.0],  # 7 R_TOE
+        [2325.0, -229.0, 744.0],  # 8
+        [2332.0, -208.0, 397.0],  # 9 R_KNE, at the arm's depth
+    ]
+    tracks = {
+        "R_HIP": ([2209.0, -182.0, 670.0], [41.0, -4.0, 6.0], 2),
+        "R_THI": ([2327.0, -149.0, 476.0], [15.0, -7.0, -1.0], 1),
+        "R_KNE": ([2326.0, -82.0, 383.0], [28.0, 11.0, -3.0], 2),
+        "R_TIB": ([2278.0, -121.0, 148.0], [-1.0, -3.0, 0.0], 1),
+        "R_ANK": ([2272.0, -67.0, 57.0], [0.0, 2.0, -1.0], 1),
+        "R_HEE": ([2215.0, -53.0, 34.0], [0.0, -2.0, 1.0], 1),
+        "R_TOE": ([2380.0, -63.0, 44.0], [-6.0, -26.0, 6.0], 1),
+        "L_TOE": ([2007.0, 55.0, 88.0], [90.0, 25.0, 11.0], 1),
+    }
+    geo = _geometry(
+        1025.0,
+        {
+            ("ANK", "HEE"): 50.0,
+            ("ANK", "TOE"): 112.0,
+            ("HEE", "TOE"): 156.0,
+            ("KNE", "ANK"): 332.0,
+            ("HIP", "KNE"): 308.0,
+            ("THI", "KNE"): 96.0,
+            ("HIP", "THI"): 216.0,
+        },
+    )
+    a = _lower(blobs, tracks, {"R_SHO": 0}, geo, [2274.0, -142.0, 1037.0], "R", 1, frame=75)
+    assert a[MARKER_INDEX["R_THI"]] != 9
+    assert a[MARKER_INDEX["R_KNE"]] == 9
