@@ -524,6 +524,24 @@ def segment_outliers(a: np.ndarray, b: np.ndarray, tol: float = 0.15) -> np.ndar
     return ok & (np.abs(d - ref) > tol * ref)
 
 
+def chain_outliers(
+    hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray, tol: float = 0.15
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The wrong sample of a leg's HIP-KNE-ANK chain, from its two segment lengths.
+
+    In a frame where all three markers are seen, a thigh length that departs from its
+    median over the series by more than ``tol`` (relative) while the shank's does not names
+    the hip; a shank alone names the ankle; both name the knee, which they share. A frame
+    with one or two of the markers is not judged (a pair cannot say which of its two is
+    wrong). hip, knee, ankle : (F, 3) mm, NaN = missing. Returns three (F,) bool masks
+    (hip, knee, ankle): True = drop that sample.
+    """
+    thigh = segment_outliers(hip, knee, tol)
+    shank = segment_outliers(knee, ankle, tol)
+    seen = np.isfinite(np.stack([hip, knee, ankle])).all(axis=(0, 2))
+    return seen & thigh & ~shank, seen & thigh & shank, seen & shank & ~thigh
+
+
 def running_median(t: np.ndarray, z: np.ndarray, window_s: float) -> np.ndarray:
     """Median of the seen values within ``window_s`` / 2 of each sample, by index (a dropped
     frame widens the window a little). z : (F, M), NaN = missing. Returns (F, M), NaN where

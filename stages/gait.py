@@ -25,7 +25,11 @@ Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
    return pass shows the other side of the body to the camera);
 5. per pass and foot, Alg. 6 on the heel and toe heights, events refined inside the flat
    ranges (``refine``), then step and stride length, stance and swing, the eight phases;
-6. knee flexion = 180 deg - angle HIP-KNE-ANK from the gap-filled, resampled 3D markers.
+6. knee flexion = 180 deg - angle HIP-KNE-ANK from the gap-filled, resampled 3D markers;
+   before filling, a frame's hip, knee or ankle sample that makes the thigh or the shank
+   (or both: the knee) depart from its median length (``segment_tol``) is dropped
+   (:func:`gaitflow.gaitcore.chain_outliers`), and after it the knee angle is unknown where
+   a length still departs.
 
 Array conventions: marker axis follows ``gaitflow.markers.MARKER_NAMES``; camera mm; NaN =
 missing; time axis 0; seconds; degrees. Ground truth is never read here.
@@ -108,7 +112,8 @@ PARAMS = ParamSet(
             float,
             0.15,
             "ratio",
-            "knee angle unknown where thigh or shank length departs this much from its median",
+            "a thigh or shank length departing this much from its median drops the wrong "
+            "marker's sample before gap filling, and the knee angle where it stays",
             0.0,
         ),
         Param(
@@ -494,6 +499,14 @@ def analyse(
         # the knee markers alone go through the outlier filter: a dropped heel sample in a
         # fast swing would cost an event, a dropped knee sample only a filled gap
         kpos = gc.reject_outliers(pos[:, KNEE_MARKERS], p["outlier_mm"])
+        if p["segment_tol"] > 0:
+            # a wrong hip, knee or ankle sample is dropped before the gap filler, which
+            # would otherwise bend the filled curve through it for the frames around
+            # (after filling, only the frames where the length itself departs are caught)
+            for leg in (kpos[:, 0:3], kpos[:, 3:6]):
+                drop = gc.chain_outliers(leg[:, 0], leg[:, 1], leg[:, 2], p["segment_tol"])
+                for k, bad in enumerate(drop):
+                    leg[bad, k] = np.nan
         pk, knee_series = _fill_resample(t, kpos, KNEE_MARKERS, p, prev.get("knee"), keep)
         if knee_series is not None:
             kept["knee"] = knee_series

@@ -448,3 +448,19 @@ def test_an_event_inside_a_long_gap_is_unknown_not_guessed():
     (same,) = gc.drop_events_in_gaps([c], t, heel, np.ones(20, bool), 0.15)
     assert same == c
     assert gc.drop_events_in_gaps([c], t, heel, toe, 0.0) == [c]
+
+
+def test_chain_outliers_name_the_wrong_marker_of_the_leg():
+    # A straight leg: thigh 400 mm, shank 400 mm, in 8 frames.
+    hip = np.tile([0.0, 0.0, 2500.0], (8, 1))
+    knee = np.tile([0.0, 400.0, 2500.0], (8, 1))
+    ankle = np.tile([0.0, 800.0, 2500.0], (8, 1))
+    hip[2, 1] += 150.0  # thigh 250: the hip
+    ankle[4, 1] -= 150.0  # shank 250: the ankle
+    knee[6, 1] += 150.0  # thigh 550, shank 250: the knee both share
+    ankle[7] = np.nan  # a pair only: not judged,
+    hip[7, 1] += 150.0  # however short its thigh
+    bh, bk, ba = gc.chain_outliers(hip, knee, ankle, 0.15)
+    assert np.flatnonzero(bh).tolist() == [2]
+    assert np.flatnonzero(ba).tolist() == [4]
+    assert np.flatnonzero(bk).tolist() == [6]
