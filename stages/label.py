@@ -15,8 +15,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    (or a clearly nearer-to-camera one at the same place: the near shoulder); without one
    the prediction stands in for up to ``max_missed`` frames (steps 1-3); missing frames
    count as misses and a track back after 3 restarts; a blob ``far_sho_mm`` deeper than the
-   track (the far shoulder) never continues it. The first shoulder is a shoulder-height
-   blob with body markers below it and nearer the camera than they are;
+   track (the deeper of its last and predicted depth; the far shoulder) never continues
+   it. The first shoulder is a shoulder-height blob with body markers below it and nearer
+   the camera than they are;
 3. the walking direction is the sign of the shoulder's velocity along a (first sight:
    toward the far end of the walkway, or, when a track that ended for misses restarts
    within ``restart_frames`` frames, the shoulder blob's move since the last frame
@@ -793,7 +794,11 @@ def label_frame(
         gate = p["sho_gate_mm"] * min(2.0, 1 + 0.25 * st.sho_missed)
         # Not a blob clearly deeper than the track: the far shoulder, which stays in view
         # a few frames longer when the near one leaves the image at the end of a pass.
-        cand = np.flatnonzero(band & (top[:, 1] < kx[1] + p["far_sho_mm"]))
+        # Measured from the deeper of the last depth and the predicted one: depth noise
+        # gives the track a depth velocity toward the camera (±700 mm/s at twice the
+        # Kinect's noise), and measured from that prediction alone the true shoulder was
+        # refused until the track was lost.
+        cand = np.flatnonzero(band & (top[:, 1] < max(kx[1], st.sho_x[1]) + p["far_sho_mm"]))
         if cand.size:
             dist = np.hypot(top[cand, 0] - kx[0], top[cand, 1] - kx[1])
             j = int(np.argmin(dist))

@@ -14,16 +14,19 @@ from gaitflow.evaluate_label import calibration_record, to_camera
 from gaitflow.markers import MARKER_INDEX
 
 
-def _shoulder_frame(far_sho_mm: float) -> tuple[label.LabelState, np.ndarray]:
+def _shoulder_frame(
+    far_sho_mm: float, depth_speed: float = 0.0, depth_mm: float = 100.0
+) -> tuple[label.LabelState, np.ndarray]:
     """One frame after a walking shoulder track whose near shoulder has left the view: the
     only shoulder-height blob is the far shoulder, 60 mm behind the prediction along the
-    walk and 100 mm deeper (inside the 150 mm gate)."""
+    walk and ``depth_mm`` deeper than the track's last depth (inside the 150 mm gate).
+    ``depth_speed`` is the track's velocity in depth, mm/s."""
     geo = label.Geometry.from_model(None)
     H = geo.sho_h
     ff = FloorFrame.from_record(calibration_record(), 800.0)
     st = label.init(label.PARAMS.resolve({"far_sho_mm": far_sho_mm}))
     v = 1350.0  # mm/s along the walk
-    x = np.array([3000.0, 0.0, H, v, 0.0, 0.0])
+    x = np.array([3000.0, 0.0, H, v, depth_speed, 0.0])
     st = replace(
         st,
         trial="walk-01",
@@ -34,7 +37,7 @@ def _shoulder_frame(far_sho_mm: float) -> tuple[label.LabelState, np.ndarray]:
         walked=True,
     )
     ahead = x[0] + v / 30.0
-    blob = to_camera(np.array([ahead - 60.0, 100.0, H]))
+    blob = to_camera(np.array([ahead - 60.0, depth_mm, H]))
     pos = np.repeat(blob[None, None, :], 3, axis=1)  # (1 blob, 3 modes, 3)
     st, assign = label.label_frame(st, pos, 11, ff, geo)
     return st, assign
@@ -51,6 +54,18 @@ def test_far_shoulder_rule_is_what_rejects_it() -> None:
     # published: a 100 mm step away from the camera reads as heading off the line, a turn.)
     st, _ = _shoulder_frame(1000.0)
     assert st.sho_missed == 0
+
+
+def test_a_depth_drift_of_the_track_does_not_make_its_shoulder_the_far_one() -> None:
+    # Depth noise gives the track a velocity toward the camera (-900 mm/s: its prediction
+    # 30 mm nearer than its last depth). The shoulder blob, 55 mm deeper than the last
+    # depth and so 85 mm behind the prediction, is still the track's own shoulder: the
+    # far-shoulder test measures from the deeper of the two.
+    st, _ = _shoulder_frame(80.0, depth_speed=-900.0, depth_mm=55.0)
+    assert st.sho_missed == 0
+    # A blob 100 mm behind the last depth stays the far shoulder whatever the drift.
+    st, _ = _shoulder_frame(80.0, depth_speed=-900.0, depth_mm=100.0)
+    assert st.sho_missed == 1
 
 
 def test_far_sho_mm_is_declared_non_negative() -> None:
