@@ -114,6 +114,11 @@ PELVIS_LEVEL_FRAC = 0.08
 STRAY_PELVIS_FRAC = 0.12
 STRAY_BODY_FRAC = 0.25
 FAR_FOOT_FRAC = 0.08
+# The hip marker (greater trochanter) sits a little below the pelvis markers' level: the
+# template's drop is 0.06 H, 0.05-0.09 H on the trials. A pelvis-band blob more than
+# HIP_DROP_FACTOR times the template's drop below the other pelvis blobs is a thigh wand
+# placed high (0.13-0.15 H below them on opensim_rajagopal_walk), not the hip.
+HIP_DROP_FACTOR = 2.0
 
 PARAMS = ParamSet(
     NAME,
@@ -295,13 +300,15 @@ def label_pose(
     shoulder (pelvis band: PSI..ASI + STRAY_PELVIS_FRAC * H; any: PSI..TOE +
     STRAY_BODY_FRAC * H) are strays. Near or far: a blob is far only behind a near twin
     (same forward position and height within TWIN_TOL_FRAC * H; depth alone is too noisy),
-    or, on the floor, more than FAR_FOOT_FRAC * H beyond the near foot. Pelvis band: the
-    near HIP is the lowest near blob (when clearly lower), PSI the rearmost and ASI the
-    foremost within PELVIS_LEVEL_FRAC * H of the PSI's height; far PSI/ASI likewise. Thigh
-    band: THI above KNE. Shank/foot band: TIB is the highest near blob above the ankle
-    band; of the low near blobs TOE is the foremost, ANK and HEE the rest by the
-    template's forward and height gaps; the far heel and toe are the rearmost and
-    foremost low far blobs.
+    or, on the floor, more than FAR_FOOT_FRAC * H beyond the near foot. Pelvis band: a near
+    blob more than HIP_DROP_FACTOR times the template's hip drop below the other pelvis
+    blobs is a thigh wand (it joins the leg band); the near HIP is the lowest near blob
+    (when clearly lower), PSI the rearmost and ASI the foremost within PELVIS_LEVEL_FRAC * H
+    of the PSI's height; far PSI/ASI likewise. Leg band: KNE is the blob nearest the
+    template's knee height, THI the highest above it; blobs below it join the shank band.
+    Shank/foot band: TIB is the highest near blob above the ankle band; of the low near
+    blobs TOE is the foremost, ANK and HEE the rest by the template's forward and height
+    gaps; the far heel and toe are the rearmost and foremost low far blobs.
     """
     del gate_sigma
     out = np.full(20, -1)
@@ -365,8 +372,16 @@ def label_pose(
     def put(name: str, i: int) -> None:
         out[MARKER_INDEX[name]] = ok[i]
 
+    hip_drop = HIP_DROP_FACTOR * (0.5 * (frac["ASI"] + frac["PSI"]) - frac["HIP"]) * H
+    wand = []  # near pelvis-band blobs too low for the hip: the thigh wand's candidates
     for side, sel in ((near, is_near), (far, ~is_near)):
         c = [i for i in pel if sel[i]]
+        while side == near and len(c) >= 2:
+            low = min(c, key=lambda i: h[i])
+            if h[low] > float(np.median([h[i] for i in c if i != low])) - hip_drop:
+                break
+            wand.append(low)
+            c.remove(low)
         if side == near and len(c) >= 2:
             low = min(c, key=lambda i: h[i])
             others = [i for i in c if i != low]
@@ -385,14 +400,24 @@ def label_pose(
             # One pelvis blob: front or back of the pelvis, judged against the shoulder.
             put(f"{side}_ASI" if f[c[0]] > f[sho] else f"{side}_PSI", c[0])
     leg = [i for i in np.flatnonzero((h > lo_leg) & (h <= lo_pel) & inside) if is_near[i]]
-    leg = sorted(leg, key=lambda i: -h[i])
+    leg = sorted(leg + wand, key=lambda i: -h[i])
+    below_knee: list[int] = []
+    th, kn = frac["THI"] * H, frac["KNE"] * H
     if len(leg) >= 2:
-        put(f"{near}_THI", leg[0])
-        put(f"{near}_KNE", leg[-1])
+        # The knee is the blob nearest the template's knee height (0.32-0.37 H on every
+        # trial), not the lowest: a tibia wand placed high on the shank (0.28 H, 0.07 H
+        # below the knee, on opensim_rajagopal_walk) enters this band. The thigh wand is
+        # the highest blob above the knee; blobs below it belong to the shank.
+        knee = min(leg, key=lambda i: abs(h[i] - kn))
+        above = [i for i in leg if h[i] > h[knee]]
+        below_knee = [i for i in leg if h[i] < h[knee]]
+        put(f"{near}_KNE", knee)
+        if above:
+            put(f"{near}_THI", above[0])
     elif len(leg) == 1:
-        th, kn = frac["THI"] * H, frac["KNE"] * H
         put(f"{near}_THI" if abs(h[leg[0]] - th) < abs(h[leg[0]] - kn) else f"{near}_KNE", leg[0])
     shank = [i for i in np.flatnonzero((h > lo_shank) & (h <= lo_leg) & inside) if is_near[i]]
+    shank += below_knee
     if shank:
         put(f"{near}_TIB", max(shank, key=lambda i: h[i]))
     # Feet: twins as for the pelvis (the far heel or toe behind the near one); a low blob

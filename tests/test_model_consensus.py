@@ -66,6 +66,35 @@ def test_split_far_toe_does_not_shift_leg_labels() -> None:
     assert idx[MARKER_INDEX["L_TOE"]] in (len(SEEN), SEEN.index(MARKER_INDEX["L_TOE"]))
 
 
+@pytest.mark.parametrize("hip_seen", [True, False])
+def test_high_thigh_and_tibia_wands_keep_the_leg_chain(hip_seen: bool) -> None:
+    # opensim_rajagopal_walk's placement, as fractions of the shoulder height H: the thigh
+    # wand 0.52 H (0.15 H below the pelvis markers, in the pelvis band), the tibia wand
+    # 0.28 H (0.07 H below the knee, in the leg band). The band rules took the thigh wand
+    # for the hip, the knee for the thigh and the tibia wand for the knee.
+    P = _pose()
+    H = LAYOUT[0, 1]
+    P[MARKER_INDEX["R_THI"], 2] = 0.52 * H
+    P[MARKER_INDEX["R_TIB"], 2] = 0.28 * H
+    seen = SEEN if hip_seen else [i for i in SEEN if i != MARKER_INDEX["R_HIP"]]
+    idx = label_pose(P[seen], 1, LAYOUT)
+    for name in ("R_THI", "R_KNE", "R_TIB", "R_ASI", "R_PSI"):
+        assert idx[MARKER_INDEX[name]] == seen.index(MARKER_INDEX[name]), name
+    hip = seen.index(MARKER_INDEX["R_HIP"]) if hip_seen else -1
+    assert idx[MARKER_INDEX["R_HIP"]] == hip
+
+
+def test_a_crouched_subjects_low_hip_is_still_the_hip() -> None:
+    # The bundled crouched subject: hip 0.09 H below the pelvis markers and 0.54 H high.
+    P = _pose()
+    H = LAYOUT[0, 1]
+    pelvis = 0.5 * (P[MARKER_INDEX["R_ASI"], 2] + P[MARKER_INDEX["R_PSI"], 2])
+    P[MARKER_INDEX["R_HIP"], 2] = pelvis - 0.09 * H
+    idx = label_pose(P[SEEN], 1, LAYOUT)
+    for name in ("R_HIP", "R_THI", "R_KNE", "R_TIB"):
+        assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+
+
 @pytest.mark.parametrize("offset", [(0.0, 0.0, 150.0), (450.0, 0.0, 0.0)])
 def test_stray_at_pelvis_height_is_not_the_asi(offset: tuple[float, float, float]) -> None:
     # A hand above the pelvis (150 mm above the ASI) or a reflector 450 mm ahead of it.
