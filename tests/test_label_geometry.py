@@ -33,15 +33,8 @@ def test_on_segment_cost_for_a_wand_on_and_off_the_shank() -> None:
     assert off > 10.0 and past > 10.0
 
 
-def test_implausible_static_segment_falls_back_to_the_template() -> None:
-    tpl = label.Geometry.from_model(None)
+def _geometry_with_foot(offs: dict[str, list[float]]) -> label.Geometry:
     hdr = SubjectModel.make_header("cam0", "static", 0, 0, True)
-    # A static pose whose toe was taken for a blob 35 mm ahead of the ankle.
-    offs = {
-        "near_ANK": [100.0, 0.0, 85.0],
-        "near_HEE": [40.0, 0.0, 40.0],
-        "near_TOE": [135.0, 0.0, 80.0],
-    }
     extra = {"sho_height_mm": TEMPLATE_SHO_HEIGHT, "offsets_from_shoulder": offs}
     m = SubjectModel(
         header=hdr,
@@ -49,10 +42,43 @@ def test_implausible_static_segment_falls_back_to_the_template() -> None:
         distances=np.full((20, 20), np.nan),
         extra=extra,
     )
-    geo = label.Geometry.from_model(m)
+    return label.Geometry.from_model(m)
+
+
+def test_implausible_static_segment_falls_back_to_the_template() -> None:
+    tpl = label.Geometry.from_model(None)
+    # A static pose whose toe was taken for a blob 35 mm ahead of the ankle.
+    offs = {
+        "near_ANK": [100.0, 0.0, 85.0],
+        "near_HEE": [40.0, 0.0, 40.0],
+        "near_TOE": [135.0, 0.0, 80.0],
+    }
+    geo = _geometry_with_foot(offs)
     assert np.isclose(geo.d("ANK", "TOE"), tpl.d("ANK", "TOE"))
     # A plausible measured segment is kept.
     assert np.isclose(geo.d("ANK", "HEE"), np.hypot(60.0, 45.0))
+
+
+def test_a_foot_measured_at_one_larger_scale_is_kept() -> None:
+    # The template's foot (ANK, HEE, TOE offsets from the shoulder) scaled by 1.5 about
+    # the ankle: a toe marker on the toe's tip and a heel marker low on the shoe
+    # (opensim_rajagopal_walk). Every length is 1.5 times the template's, beyond
+    # PLAUSIBLE, but the triangle is the template's shape: it is kept.
+    tpl = label.Geometry.from_model(None)
+    ank = tpl.rel_sho("near", "ANK")
+    offs = {
+        f"near_{s}": (ank + 1.5 * (tpl.rel_sho("near", s) - ank)).tolist()
+        for s in ("ANK", "HEE", "TOE")
+    }
+    geo = _geometry_with_foot(offs)
+    for a, b in label.FOOT:
+        assert np.isclose(geo.d(a, b), 1.5 * tpl.d(a, b)), (a, b)
+    # One length alone 1.5 times the template's is a labelling error: the template's.
+    offs["near_TOE"] = tpl.rel_sho("near", "TOE").tolist()
+    offs["near_HEE"] = (ank + 1.5 * (tpl.rel_sho("near", "HEE") - ank)).tolist()
+    geo = _geometry_with_foot(offs)
+    assert np.isclose(geo.d("ANK", "HEE"), tpl.d("ANK", "HEE"))
+    assert np.isclose(geo.d("ANK", "TOE"), tpl.d("ANK", "TOE"))
 
 
 def test_foot_lengths_learned_from_walking_frames_and_outliers_ignored() -> None:
