@@ -119,6 +119,9 @@ FAR_FOOT_FRAC = 0.08
 # HIP_DROP_FACTOR times the template's drop below the other pelvis blobs is a thigh wand
 # placed high (0.13-0.15 H below them on opensim_rajagopal_walk), not the hip.
 HIP_DROP_FACTOR = 2.0
+# Ankle, heel and toe markers of a standing subject sit below this fraction of H (the
+# ankle at 0.04-0.07 H on the trials), a tibia wand above it (0.10-0.28 H).
+FOOT_BAND_FRAC = 0.085
 
 PARAMS = ParamSet(
     NAME,
@@ -248,7 +251,9 @@ def facing_from_feet(pts: np.ndarray, sho_height: float) -> int:
     same foot furthest from it along the walking axis is the toe, and its side is the
     facing direction. Returns +1 or -1, or 0 when undecidable.
     """
-    low = pts[pts[:, 2] < 0.12 * sho_height]
+    # The foot band of label_pose: a tibia wand low on the shank (0.10-0.13 H on two of
+    # the trials) is no ankle.
+    low = pts[pts[:, 2] < FOOT_BAND_FRAC * sho_height]
     if len(low) < 2:
         return 0
     ank = low[np.argmax(low[:, 2])]
@@ -272,6 +277,12 @@ def _facing_from_mass(pts: np.ndarray, sho_h: float) -> int:
     pel = pts[(pts[:, 2] > 0.55 * sho_h) & (pts[:, 2] < 0.8 * sho_h)]
     if len(low) == 0 or len(pel) == 0:
         return 0
+    # A hand or a stray at pelvis height lies beyond the pelvis's own length (the
+    # template's PSI-ASI span) from the pelvis blobs' median: btk_PiG_Motion-FlatFoot-Full's
+    # stray 0.3 H ahead moved the pelvis centre forward and turned every frame's vote.
+    tpl = template_layout(sho_h / TEMPLATE_SHO_HEIGHT)
+    span = float(tpl[SITES.index("ASI"), 0] - tpl[SITES.index("PSI"), 0])
+    pel = pel[np.abs(pel[:, 0] - np.median(pel[:, 0])) <= span]
     d = float(low[:, 0].mean() - 0.5 * (pel[:, 0].min() + pel[:, 0].max()))
     return 0 if abs(d) < 15.0 else int(np.sign(d))
 
@@ -338,7 +349,7 @@ def label_pose(
     hi_pel = 0.5 * (1.0 + max(frac["ASI"], frac["PSI"])) * H
     lo_leg = 0.5 * (frac["TIB"] + frac["KNE"]) * H
     # Ankle, heel and toe sit below ~7% of shoulder height, a tibia marker above ~10%.
-    lo_shank = 0.085 * H
+    lo_shank = FOOT_BAND_FRAC * H
     # A standing subject's markers lie within the template's forward span around the
     # shoulder (PSI rearmost, TOE foremost) plus a margin for posture and proportions;
     # a blob beyond it at body height is a stray (a hand, a reflector) within the cluster.

@@ -59,25 +59,29 @@ def test_implausible_static_segment_falls_back_to_the_template() -> None:
     assert np.isclose(geo.d("ANK", "HEE"), np.hypot(60.0, 45.0))
 
 
-def test_a_foot_measured_at_one_larger_scale_is_kept() -> None:
+def test_a_measured_foot_within_foot_scale_is_kept() -> None:
     # The template's foot (ANK, HEE, TOE offsets from the shoulder) scaled by 1.5 about
-    # the ankle: a toe marker on the toe's tip and a heel marker low on the shoe
-    # (opensim_rajagopal_walk). Every length is 1.5 times the template's, beyond
-    # PLAUSIBLE, but the triangle is the template's shape: it is kept.
+    # the ankle (opensim_rajagopal_walk: a toe marker on the toe's tip, a heel marker low on
+    # the shoe), and then only the toe moved to the toe's tip: foot lengths beyond
+    # PLAUSIBLE but inside FOOT_SCALE are the subject's, not a labelling error.
     tpl = label.Geometry.from_model(None)
     ank = tpl.rel_sho("near", "ANK")
-    offs = {
-        f"near_{s}": (ank + 1.5 * (tpl.rel_sho("near", s) - ank)).tolist()
-        for s in ("ANK", "HEE", "TOE")
-    }
+
+    def scaled(site: str, k: float) -> list[float]:
+        return (ank + k * (tpl.rel_sho("near", site) - ank)).tolist()
+
+    offs = {f"near_{s}": scaled(s, 1.5) for s in ("ANK", "HEE", "TOE")}
     geo = _geometry_with_foot(offs)
     for a, b in label.FOOT:
         assert np.isclose(geo.d(a, b), 1.5 * tpl.d(a, b)), (a, b)
-    # One length alone 1.5 times the template's is a labelling error: the template's.
-    offs["near_TOE"] = tpl.rel_sho("near", "TOE").tolist()
-    offs["near_HEE"] = (ank + 1.5 * (tpl.rel_sho("near", "HEE") - ank)).tolist()
+    offs = {"near_ANK": scaled("ANK", 1.0), "near_HEE": scaled("HEE", 1.0)}
+    offs["near_TOE"] = scaled("TOE", 1.6)
     geo = _geometry_with_foot(offs)
-    assert np.isclose(geo.d("ANK", "HEE"), tpl.d("ANK", "HEE"))
+    assert np.isclose(geo.d("ANK", "TOE"), 1.6 * tpl.d("ANK", "TOE"))
+    assert geo.d("HEE", "TOE") > (1.0 + label.PLAUSIBLE) * tpl.d("HEE", "TOE")
+    # Beyond FOOT_SCALE (a toe 2.2 times as far ahead): the template's.
+    offs["near_TOE"] = scaled("TOE", 2.2)
+    geo = _geometry_with_foot(offs)
     assert np.isclose(geo.d("ANK", "TOE"), tpl.d("ANK", "TOE"))
 
 

@@ -9,7 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gaitflow.stages.model import body_to_floor, consensus_pose, label_pose, template_layout
+from gaitflow.stages.model import (
+    _facing_from_mass,
+    body_to_floor,
+    consensus_pose,
+    facing_from_feet,
+    label_pose,
+    template_layout,
+)
 
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 
@@ -93,6 +100,33 @@ def test_a_crouched_subjects_low_hip_is_still_the_hip() -> None:
     idx = label_pose(P[SEEN], 1, LAYOUT)
     for name in ("R_HIP", "R_THI", "R_KNE", "R_TIB"):
         assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+
+
+@pytest.mark.parametrize("facing", [1, -1])
+def test_facing_from_the_feet_mass_ignores_a_stray_ahead_at_pelvis_height(facing: int) -> None:
+    # btk_PiG_Motion-FlatFoot-Full's static trial: a stray 0.3 H in front of the pelvis at
+    # its height. Taken for a pelvis blob, it moved the pelvis centre ahead of the feet and
+    # every frame voted the wrong way (the model's facing then rested on a tie).
+    P = body_to_floor(LAYOUT, np.array([2000.0, 0.0, 0.0]), facing)
+    H = LAYOUT[0, 1]
+    pelvis = P[MARKER_INDEX["R_ASI"]]
+    stray = pelvis + np.array([facing * 0.3 * H, 0.0, 0.0])
+    assert _facing_from_mass(P, H) == facing
+    assert _facing_from_mass(np.vstack([P, stray]), H) == facing
+
+
+@pytest.mark.parametrize("facing", [1, -1])
+def test_facing_from_the_feet_is_not_taken_from_a_low_tibia_wand(facing: int) -> None:
+    # A crouched subject's tibia wand low on the shank (0.11 H) and pointing forward
+    # (110 mm ahead of the ankle): taken for the ankle (the highest low marker), it made
+    # the heel the marker furthest from it and every frame voted the wrong way.
+    P = body_to_floor(LAYOUT, np.array([2000.0, 0.0, 0.0]), facing)
+    H = LAYOUT[0, 1]
+    for side in "LR":
+        ank, tib = MARKER_INDEX[f"{side}_ANK"], MARKER_INDEX[f"{side}_TIB"]
+        P[tib, 0] = P[ank, 0] + facing * 110.0
+        P[tib, 2] = 0.11 * H
+    assert facing_from_feet(P, H) == facing
 
 
 @pytest.mark.parametrize("offset", [(0.0, 0.0, 150.0), (450.0, 0.0, 0.0)])
