@@ -1250,13 +1250,21 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         & (q[:, 1] - sho[1] > -0.3 * H)
         & (q[:, 1] - sho[1] < 0.5 * H)
     )
-    low = body & (q[:, 2] < 0.3 * H)
+    # The foot and shank markers: below 0.3 H, or up to 0.05 H above where the static
+    # pose measured the tibia wand (a wand placed just below the knee, 0.27 H, rises past
+    # 0.3 H in swing).
+    low = body & (q[:, 2] < max(0.3 * H, geo.rel_sho("near", "TIB")[2] + 0.05 * H))
     kne_i = MARKER_INDEX[f"{near}_KNE"]
     if fr.tracked[kne_i] and fr.age[kne_i] == 1:
         # The blob on the near knee's fresh track is kept for the limb search: a crouched
         # knee sits as low as a tibia wand (the foot search comes first).
         u = (((fr.pos(kne_i) - fr.pred[kne_i]) / fr.sig[kne_i]) ** 2).sum(axis=1)
-        low &= ~(u < 4.0)
+        # Only the track's best blob: a tibia wand placed just below the knee (80 mm) also
+        # lies within 2 sigma of the knee's prediction, and with it kept out the tibia
+        # label took the heel in swing.
+        u = np.where(low, u, np.inf)
+        if u.size and float(u.min()) < 4.0:
+            low[int(np.argmin(u))] = False
     elif hip is not None:
         # Without a fresh knee track (a pass's first frames), a blob at the thigh's length
         # from the labelled hip (within half a sigma of _rigid) is kept for the limb search

@@ -1,5 +1,5 @@
 """Label stage, legs: foot-track acceleration sigma, far heel/toe and knee track claims,
-knee ring.
+knee ring, a tibia wand placed just below the knee.
 
 Literal positions from simulated walks where the earlier stage went wrong (rounded, mm, in the
 oriented floor frame the foot search works in: forward along the walking direction, e away
@@ -222,3 +222,68 @@ def test_the_knees_fresh_track_keeps_its_blob_from_a_hidden_thigh_wand() -> None
     a = _lower(blobs, tracks, {"R_SHO": 0}, geo, [2274.0, -142.0, 1037.0], "R", 1, frame=75)
     assert a[MARKER_INDEX["R_THI"]] != 9
     assert a[MARKER_INDEX["R_KNE"]] == 9
+
+
+def _high_wand_frame(tib_height: float) -> tuple[list[list[float]], dict, label.Geometry]:
+    """btk c3dorg_s00_vicon_CGM24 with the tibia wand moved to 80 mm below the knee and the
+    thigh wand up the thigh (a placement check, not a bundled walk), frame 66, near side R,
+    the right foot in swing. ``tib_height`` (mm) replaces the tibia blob's and track's
+    height (389 in the frame)."""
+    blobs = [
+        [1532.0, -183.0, 816.0],  # 0 R_HIP
+        [1495.0, -201.0, 1402.0],  # 1 R_SHO
+        [1713.0, -322.0, 916.0],  # 2
+        [1758.0, 27.0, 61.0],  # 3 L_HEE
+        [1940.0, 26.0, 56.0],  # 4 L_TOE
+        [1075.0, -35.0, 248.0],  # 5 R_HEE, raised in swing
+        [1428.0, -145.0, 431.0],  # 6 R_KNE
+        [1098.0, -65.0, 206.0],  # 7 R_ANK
+        [1359.0, -141.0, tib_height],  # 8 R_TIB, 80 mm below the knee
+        [1488.0, -177.0, 725.0],  # 9 R_THI
+        [1113.0, -14.0, 75.0],  # 10 R_TOE
+    ]
+    tracks = {
+        "R_HIP": ([1473.0, -184.0, 816.0], [60.0, 3.0, -6.0], 1),
+        "R_THI": ([1423.0, -180.0, 729.0], [66.0, 2.0, -7.0], 1),
+        "R_KNE": ([1343.0, -136.0, 438.0], [74.0, -12.0, -7.0], 1),
+        "R_TIB": ([1152.0, -112.0, tib_height + 1.0], [35.0, -2.0, 1.0], 3),
+        "R_ANK": ([1029.0, -57.0, 177.0], [48.0, -4.0, 24.0], 1),
+        "R_HEE": ([937.0, 2.0, 170.0], [1.0, 49.0, 31.0], 2),
+        "R_TOE": ([1073.0, 2.0, 52.0], [12.0, 14.0, 0.0], 1),
+        "L_HEE": ([1756.0, 8.0, 62.0], [11.0, 3.0, 11.0], 1),
+        "L_TOE": ([1940.0, 27.0, 56.0], [21.0, 1.0, -30.0], 1),
+    }
+    geo = _geometry(
+        1461.0,
+        {
+            ("ANK", "HEE"): 48.0,
+            ("ANK", "TOE"): 130.0,
+            ("HEE", "TOE"): 174.0,
+            ("KNE", "ANK"): 406.0,
+            ("HIP", "KNE"): 406.0,
+            ("KNE", "TIB"): 81.0,
+        },
+    )
+    return blobs, tracks, geo
+
+
+def test_the_knees_track_keeps_only_its_own_blob_out_of_the_foot_search() -> None:
+    # The tibia wand 80 mm below the knee lies within 2 sigma of the knee's prediction too:
+    # kept out of the foot search with the knee's blob, it left the tibia label to the heel
+    # raised in swing (and the next frames shifted the knee onto the wand).
+    blobs, tracks, geo = _high_wand_frame(389.0)
+    a = _lower(blobs, tracks, {"R_SHO": 1, "R_HIP": 0}, geo, [1495.0, -204.0, 1398.0], "R", 1)
+    assert a[MARKER_INDEX["R_TIB"]] == 8
+    assert a[MARKER_INDEX["R_KNE"]] == 6
+
+
+def test_a_tibia_wand_placed_high_stays_a_foot_search_candidate() -> None:
+    # The same frame with the wand 20 mm above 0.3 H (the foot search's band): a wand that
+    # the static pose measured at 398 mm (0.27 H) may rise past 0.3 H in swing; the band
+    # reaches 0.05 H above the measured height.
+    blobs, tracks, geo = _high_wand_frame(458.0)
+    offsets = geo.offsets.copy()
+    offsets[0, SITES.index("TIB"), 2] = 398.0
+    geo = replace(geo, offsets=offsets)
+    a = _lower(blobs, tracks, {"R_SHO": 1, "R_HIP": 0}, geo, [1495.0, -204.0, 1398.0], "R", 1)
+    assert a[MARKER_INDEX["R_TIB"]] == 8
