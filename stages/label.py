@@ -67,7 +67,8 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    ankle's on the heel) as a leg left the field of view.
 
 Published positions: each marker's own cluster mode (a knee, tibia or ankle may take the
-bottom mode's layer when that one continues its depth, ``leg_layer``). The heels are
+bottom mode's layer when that one fits better the depth of a marker on the same segment,
+or without one continues its own depth, ``leg_layer``). The heels are
 published at their surface point (``heel_side_on``, departure): locate puts every marker
 one radius plus base in front of the surface it sits on (``surface_offset_mm``), right
 for a marker facing the camera; a heel marker sits on the back of the heel and is seen
@@ -1624,6 +1625,24 @@ BOTTOM = CLUSTER_MODES.index("bottom")
 # layer this much closer to its last depth than the own mode's wins.
 LAYER_GAIN_MM = 20.0
 LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
+# Without a recent depth of its own, a leg marker's layer is judged against a marker of
+# the same segment seen in the frame (the ankle against the tibia wand on the shank, the
+# knee against the thigh wand on the thigh) and the standing depth offset between them.
+LAYER_REF = {"ANK": "TIB", "KNE": "THI"}
+
+
+def layer_reference(geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    """(20,) reference marker per marker for the leg layer (-1 = none) and (20,) its
+    expected depth offset (mm): the static pose's depth of the marker minus its reference's
+    (near-side offsets, used for whichever side faces the camera)."""
+    ref = np.full(20, -1)
+    off = np.zeros(20)
+    for side in "LR":
+        for site, r_site in LAYER_REF.items():
+            k = MARKER_INDEX[f"{side}_{site}"]
+            ref[k] = MARKER_INDEX[f"{side}_{r_site}"]
+            off[k] = geo.rel_sho("near", site)[1] - geo.rel_sho("near", r_site)[1]
+    return ref, off
 
 
 def _bottom_continues(own: np.ndarray, bottom: np.ndarray, last: np.ndarray) -> np.ndarray:
@@ -1676,6 +1695,7 @@ def _output(
     near: str,
     prev: tuple[np.ndarray, np.ndarray] | None = None,
     side_on: np.ndarray | None = None,
+    ref: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[LabelledMarkers, tuple[np.ndarray, np.ndarray]]:
     """The labelled frame, and the (20,) depth and frame of each marker's last position.
 
@@ -1687,6 +1707,12 @@ def _output(
     takes the bottom mode's layer instead when that one continues its last depth (within
     ``LAYER_MAX_AGE`` frames) better by ``LAYER_GAIN_MM``: a hand or the other leg passing
     in front makes the nearest layer tens of mm too near for a few frames (departure).
+
+    ``ref`` (:func:`layer_reference`) makes the choice against a marker of the same segment
+    seen in the frame instead (the ankle against the tibia wand, the knee against the thigh
+    wand, at the static pose's depth offset), and against the last depth only without one:
+    a track that starts on the layer in front (a tibia wand, an arm) would otherwise keep
+    it for whole strides.
     """
     pos = fill_modes(np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3))
     cen = np.asarray(mk.centroid, dtype=np.float64).reshape(-1, 2)
@@ -1700,9 +1726,16 @@ def _output(
         zp, seen = prev
         for k in LEG:
             bk = assign[k]
-            if bk < 0 or not np.isfinite(zp[k]) or frame - seen[k] > LAYER_MAX_AGE:
+            if bk < 0:
                 continue
-            if _bottom_continues(pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2], zp[k]):
+            if ref is not None and ref[0][k] >= 0 and assign[ref[0][k]] >= 0:
+                r = ref[0][k]
+                last = pos[assign[r], OWN_MODE[r], 2] + ref[1][k]
+            elif np.isfinite(zp[k]) and frame - seen[k] <= LAYER_MAX_AGE:
+                last = zp[k]
+            else:
+                continue
+            if _bottom_continues(pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2], last):
                 mode[k] = BOTTOM
     position[ii] = pos[b, mode[ii]]
     if side_on is not None:
@@ -1772,7 +1805,9 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     direction = st.direction if st.sho_x is not None else 0
     track = p["leg_layer"] == "track"
     side_on = HEELS if p["heel_side_on"] else None
-    out, leg_depth = _output(mk, assign, direction, near, st.leg_depth if track else None, side_on)
+    out, leg_depth = _output(
+        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_reference(geo)
+    )
     return replace(st, leg_depth=leg_depth if track else None), [out]
 
 

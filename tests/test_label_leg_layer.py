@@ -1,5 +1,5 @@
-"""Label output: a knee's depth layer chosen by continuity when something passes in front;
-the heel published at its surface point."""
+"""Label output: a knee's depth layer chosen by continuity when something passes in front,
+or against a marker of the same segment; the heel published at its surface point."""
 
 from __future__ import annotations
 
@@ -61,6 +61,43 @@ def test_without_a_recent_depth_the_own_mode_stands() -> None:
     near = (np.full(20, 2610.0), np.zeros(20, int))
     out, _ = label._output(_markers(1, 2600.0, 2612.0), _assign(), 1, "L", near)
     assert out.position[KNE, 2] == 2600.0
+
+
+def test_a_segment_reference_overrules_a_knee_depth_that_started_on_the_wrong_layer() -> None:
+    # The thigh wand (blob 0, here in the hip's place) stands 50 mm nearer the camera than
+    # the knee (the static pose's offset). The knee's track started on the arm in front of
+    # it (2520) and continuity alone keeps it there; measured against the wand on the same
+    # segment (2560 + 50 = 2610) the bottom layer (2612) is the knee's.
+    thi = MARKER_INDEX["L_THI"]
+    a = np.full(20, -1)
+    a[thi], a[KNE] = 0, 1
+    on_arm = (np.full(20, 2522.0), np.zeros(20, int))
+    mk = _markers(1, 2520.0, 2612.0)
+    pos = mk.position.copy()
+    pos[0, :, 2] = 2560.0
+    mk = dataclasses.replace(mk, position=pos)
+    out, _ = label._output(mk, a, 1, "L", on_arm)
+    assert out.position[KNE, 2] == 2520.0
+    ref, off = np.full(20, -1), np.zeros(20)
+    ref[KNE], off[KNE] = thi, 50.0
+    out, _ = label._output(mk, a, 1, "L", on_arm, None, (ref, off))
+    assert out.position[KNE, 2] == 2612.0
+    # without the wand in the frame, continuity decides as before
+    a[thi] = -1
+    out, _ = label._output(mk, a, 1, "L", on_arm, None, (ref, off))
+    assert out.position[KNE, 2] == 2520.0
+
+
+def test_layer_references_pair_each_side_within_its_segment() -> None:
+    geo = label.Geometry.from_model(None)
+    ref, off = label.layer_reference(geo)
+    for side in "LR":
+        for site, r_site in label.LAYER_REF.items():
+            k = MARKER_INDEX[f"{side}_{site}"]
+            assert ref[k] == MARKER_INDEX[f"{side}_{r_site}"]
+            want = geo.rel_sho("near", site)[1] - geo.rel_sho("near", r_site)[1]
+            assert off[k] == pytest.approx(want)
+    assert (ref >= 0).sum() == 4
 
 
 def test_the_heel_is_published_at_its_surface_point() -> None:
