@@ -124,8 +124,8 @@ PARAMS = ParamSet(
             str,
             "track",
             "",
-            "knee, tibia, ankle: own cluster mode, or the bottom mode's layer where it "
-            "continues the marker's last depth (departure)",
+            "knee, tibia, ankle: own cluster mode, or the bottom mode's layer where it fits "
+            "a wand on the same segment, or continues the last depth (departure)",
             choices=("own", "track"),
         ),
         Param(
@@ -1622,12 +1622,13 @@ def _accept(
 LEG = np.array([MARKER_INDEX[f"{side}_{m}"] for side in "LR" for m in ("KNE", "TIB", "ANK")])
 BOTTOM = CLUSTER_MODES.index("bottom")
 # A leg marker's depth (its lateral position in a side view) moves a few mm per frame; a
-# layer this much closer to its last depth than the own mode's wins.
+# layer this much closer to the reference depth (see LAYER_REF) than the own mode's wins.
 LAYER_GAIN_MM = 20.0
 LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
-# Without a recent depth of its own, a leg marker's layer is judged against a marker of
-# the same segment seen in the frame (the ankle against the tibia wand on the shank, the
-# knee against the thigh wand on the thigh) and the standing depth offset between them.
+# A leg marker's layer is judged against a marker of the same segment seen in the frame
+# (the ankle against the tibia wand on the shank, the knee against the thigh wand on the
+# thigh) at the standing depth offset between them; without one, against its own last
+# depth.
 LAYER_REF = {"ANK": "TIB", "KNE": "THI"}
 
 
