@@ -443,10 +443,12 @@ class LabelState:
     labelled: int = 0
     foot: np.ndarray | None = None  # (3,) learned ANK-HEE, ANK-TOE, HEE-TOE, mm
     foot_n: int = 0
-    # (calibration, model, FloorFrame, Geometry, Camera or None): the side inputs, and what
-    # is derived from them once per side input, not per frame (the camera: the record's,
-    # for ``view_gate``).
-    sides: tuple[Any, Any, FloorFrame, Geometry, Camera | None] | None = None
+    # (calibration, model, FloorFrame, Geometry, Camera or None, layer_reference): the side
+    # inputs, and what is derived from them once per side input, not per frame (the
+    # camera: the record's, for ``view_gate``).
+    sides: (
+        tuple[Any, Any, FloorFrame, Geometry, Camera | None, tuple[np.ndarray, np.ndarray]] | None
+    ) = None
     # ((20,) camera Z mm, (20,) frame) of each marker's last published position
     leg_depth: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -1795,8 +1797,9 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
             except InputError as exc:
                 raise StageError(NAME, f"bad camera in the calibration record: {exc}") from exc
         geo = Geometry.from_model(model)
-        st = replace(st, sides=(cal, model, ff, geo, view), fps=fps or DEFAULT_FPS)
-    _, _, ff, geo, view = st.sides
+        sides = (cal, model, ff, geo, view, layer_reference(geo))
+        st = replace(st, sides=sides, fps=fps or DEFAULT_FPS)
+    _, _, ff, geo, view, layer_ref = st.sides
     pos = np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3)
     radius = np.asarray(mk.marker_radius, dtype=np.float64)
     st, assign = label_frame(st, pos, mk.header.frame, ff, geo, radius, view)
@@ -1807,7 +1810,7 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     track = p["leg_layer"] == "track"
     side_on = HEELS if p["heel_side_on"] else None
     out, leg_depth = _output(
-        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_reference(geo)
+        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_ref
     )
     return replace(st, leg_depth=leg_depth if track else None), [out]
 
