@@ -290,6 +290,25 @@ def test_lateral_markers_sit_on_the_skin_while_walking(ses) -> None:
         assert abs(np.median(e)) < 15.0, (site, np.median(e))
 
 
+def test_wand_markers_stand_off_the_limb_with_nothing_under_them() -> None:
+    """With ``wand_mm`` the thigh and tibia wands of this trial (48 mm off the limb) carry
+    no skin patch: the ring around their depth hole is the limb behind, while the knee and
+    ankle markers still sit on the skin."""
+    wands = simulate_session(TRIAL, seed=7, config=SimConfig.quick(wand_mm=25.0))
+    rec = wands.recordings["static"]
+    raw, gt = rec.frame(len(rec) // 2)
+    rmark = wands.config.marker_radius_mm
+    behind = {}
+    for name in ("R_THI", "R_TIB", "R_KNE", "R_ANK"):
+        j = MARKER_INDEX[name]
+        assert gt.visible[j] and not gt.merged[j], name
+        c = gt.position[j]
+        ring = _ring_depth(raw.depth, gt.pixel[j], wands.camera.fx * rmark / c[2])
+        behind[name] = ring - (c[2] + rmark)
+    assert behind["R_THI"] > 30.0 and behind["R_TIB"] > 30.0, behind
+    assert abs(behind["R_KNE"]) < 15.0 and abs(behind["R_ANK"]) < 15.0, behind
+
+
 def test_truth_is_at_mid_exposure(ses) -> None:
     """Ground truth = marker positions at the frame's time, not at a blur sample."""
     rec = ses.recordings["walk-01"]

@@ -72,6 +72,10 @@ SEGMENTS: tuple[tuple[str, float, str, tuple[str, ...]], ...] = (
     ("R_forearm", 38.0, "skin", ()),
 )
 SEGMENT_NAMES = tuple(s[0] for s in SEGMENTS)
+# Plug-in Gait's thigh and tibia markers are often mounted on wands: a thin stick whose
+# base is taped to the skin, the sphere 40-100 mm off the limb (see ``build_body``).
+WAND_SITES = {"THI": ("thigh", "thigh_lo"), "TIB": ("shank", "shank_lo")}
+WAND_RADIUS_MM = 3.0
 SEGMENT_INDEX = {n: i for i, n in enumerate(SEGMENT_NAMES)}
 
 
@@ -407,6 +411,7 @@ def build_body(
     static: bool = False,
     marker_base_mm: float = 2.0,
     patch_mm: float = 70.0,
+    wand_mm: float = 0.0,
 ) -> Body:
     """Markers, capsules and radii for every frame of ``trial``.
 
@@ -414,6 +419,12 @@ def build_body(
     must not swallow stays outside it by the marker radius plus 2 mm (1st percentile over
     the trial). Then each marker gets a skin patch (:func:`skin_patches`) whose surface
     passes ``marker_radius + marker_base_mm`` behind the marker centre along its normal.
+
+    ``wand_mm`` > 0 models marker wands: a thigh or tibia marker whose base stands more
+    than ``wand_mm`` off its segment's surface (median over the trial) sits on a stick
+    (:data:`WAND_RADIUS_MM`) that runs from the sphere to the limb, not on a patch of skin,
+    so the ring around its depth hole is the limb behind it. 0 keeps a patch under every
+    marker.
     """
     m = derive_markers(trial, marker_radius)
     ends = _segment_ends(m, swing_gain, static, marker_radius)
@@ -477,6 +488,27 @@ def build_body(
     pa, pb, pr = skin_patches(
         markers, normals, axes, marker_radius, marker_base_mm, patch_mm, rho0, m["_pelvis_left"]
     )
+    if wand_mm > 0:
+        for name in MARKER_NAMES:
+            side, site = name.split("_")
+            if site not in WAND_SITES:
+                continue
+            i = MARKER_INDEX[name]
+            p, n = markers[:, i], normals[:, i]
+            # Off the limb's surface: the nearer of the segment's two tapering capsules.
+            stand = np.min(
+                [
+                    _dist_to_segment(p, cap_a[:, k], cap_b[:, k]) - radii[k]
+                    for k in (SEGMENT_INDEX[f"{side}_{seg}"] for seg in WAND_SITES[site])
+                ],
+                axis=0,
+            )
+            off = stand - marker_radius - marker_base_mm
+            if float(np.median(off)) > wand_mm:
+                # The stick reaches 5 mm into the limb so that no gap opens as it moves.
+                pa[:, i] = p - marker_radius * n
+                pb[:, i] = p - (stand + 5.0)[:, None] * n
+                pr[i] = WAND_RADIUS_MM
     cap_a = np.concatenate([cap_a, pa], axis=1)
     cap_b = np.concatenate([cap_b, pb], axis=1)
     radii = np.r_[radii, pr]

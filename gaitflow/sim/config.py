@@ -33,6 +33,7 @@ class SimConfig:
     source_marker_diameter_mm: float = 14.0  # Plug-in Gait markers of the source labs
     marker_base_mm: float = 2.0  # marker base (and tape) between the sphere and the skin
     skin_patch_mm: float = 70.0  # width of the skin surface modelled under each marker
+    wand_mm: float = 0.0  # THI/TIB standing this far off the limb are on wands (0 = none)
     # Exposure and anti-aliasing.
     exposure_ms: float = 12.0  # ToF integration window (motion blur)
     blur_samples: int = 4  # time samples over the exposure

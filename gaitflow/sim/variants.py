@@ -54,6 +54,11 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "twice the depth noise, three times the IR read noise, more flying pixels",
     ),
     "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
+    "wands": (
+        {"wand_mm": 25.0},
+        "thigh and tibia markers standing over 25 mm off the limb are on thin wands (no skin"
+        " under the sphere)",
+    ),
     "inview": (
         {"walk_margin_mm": -400.0},
         "a short walkway: each pass starts and ends 0.4 m inside the image, so the subject"
