@@ -554,8 +554,14 @@ class _Frame:
 # Mode each marker is matched under. The output keeps every marker's own cluster mode;
 # for matching, ASI and PSI use the normal mode: they sit on the front and back silhouette
 # of the pelvis, where the bottom mode's far layer is often the room behind the subject.
+# So does the thigh marker: on a wand its ring holds no surface of its own, and the
+# farthest layer behind the stick is the other leg or the wall (the nearest is the stick
+# or the limb's near side, 30-100 mm off; the farthest 140-1100 mm).
 MODE_OF = np.array(
-    [0 if n[2:] in ("ASI", "PSI") else CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES]
+    [
+        0 if n[2:] in ("ASI", "PSI", "THI") else CLUSTER_MODES.index(cluster_mode(n))
+        for n in MARKER_NAMES
+    ]
 )
 
 
@@ -1628,10 +1634,12 @@ BOTTOM = CLUSTER_MODES.index("bottom")
 LAYER_GAIN_MM = 20.0
 LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
 # A leg marker's layer is judged against a marker of the same segment seen in the frame
-# (the ankle against the tibia wand on the shank, the knee against the thigh wand on the
-# thigh) at the standing depth offset between them; without one, against its own last
-# depth.
-LAYER_REF = {"ANK": "TIB", "KNE": "THI"}
+# (the ankle against the tibia wand on the shank) at the standing depth offset between
+# them; without one, against its own last depth. Not the knee against the thigh wand: the
+# thigh wand's depth (its bottom mode, the output's) is often a layer behind it, and with
+# the wand matched on its nearest layer such frames are labelled (the knee then followed
+# the wrong reference: seed 0 knee 1.37 / 1.92 deg against 1.26 / 2.09 without it).
+LAYER_REF = {"ANK": "TIB"}
 
 
 def layer_reference(geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
@@ -1712,8 +1720,8 @@ def _output(
     in front makes the nearest layer tens of mm too near for a few frames (departure).
 
     ``ref`` (:func:`layer_reference`) makes the choice against a marker of the same segment
-    seen in the frame instead (the ankle against the tibia wand, the knee against the thigh
-    wand, at the static pose's depth offset), and against the last depth only without one:
+    seen in the frame instead (``LAYER_REF``: the ankle against the tibia wand, at the
+    static pose's depth offset), and against the last depth only without one:
     a track that starts on the layer in front (a tibia wand, an arm) would otherwise keep
     it for whole strides.
     """

@@ -64,10 +64,11 @@ def test_without_a_recent_depth_the_own_mode_stands() -> None:
 
 
 def test_a_segment_reference_overrules_a_knee_depth_that_started_on_the_wrong_layer() -> None:
-    # The thigh wand (blob 0, here in the hip's place) stands 50 mm nearer the camera than
-    # the knee (the static pose's offset). The knee's track started on the arm in front of
-    # it (2520) and continuity alone keeps it there; measured against the wand on the same
-    # segment (2560 + 50 = 2610) the bottom layer (2612) is the knee's.
+    # The mechanism, on a knee with a reference given (LAYER_REF pairs the ankle with the
+    # tibia wand only). The thigh wand (blob 0, here in the hip's place) stands 50 mm
+    # nearer the camera than the knee (the static pose's offset). The knee's track started
+    # on the arm in front of it (2520) and continuity alone keeps it there; measured against
+    # the wand on the same segment (2560 + 50 = 2610) the bottom layer (2612) is the knee's.
     thi = MARKER_INDEX["L_THI"]
     a = np.full(20, -1)
     a[thi], a[KNE] = 0, 1
@@ -97,7 +98,10 @@ def test_layer_references_pair_each_side_within_its_segment() -> None:
             assert ref[k] == MARKER_INDEX[f"{side}_{r_site}"]
             want = geo.rel_sho("near", site)[1] - geo.rel_sho("near", r_site)[1]
             assert off[k] == pytest.approx(want)
-    assert (ref >= 0).sum() == 4
+    assert (ref >= 0).sum() == 2 * len(label.LAYER_REF)
+    # The knee has none: the thigh wand's depth is the limb, the other leg or the wall
+    # behind the stick, not a depth the knee's layer can be judged against.
+    assert ref[MARKER_INDEX["L_KNE"]] == ref[MARKER_INDEX["R_KNE"]] == -1
 
 
 def test_the_heel_is_published_at_its_surface_point() -> None:

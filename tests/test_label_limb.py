@@ -52,6 +52,18 @@ def test_a_thigh_label_below_the_knee_label_is_never_chosen() -> None:
     assert not (a_t >= 0 and a_k >= 0 and fr.qm[a_t, 0, 2] < fr.qm[a_k, 0, 2])
 
 
+def test_a_thigh_wand_whose_far_layer_is_the_wall_is_still_the_thigh() -> None:
+    # A wand's ring holds no surface of its own: its farthest layer (bottom mode) is
+    # whatever lies behind the stick, here the wall 1 m behind the subject. The thigh wand
+    # is matched on its nearest layer (the stick, or the near side of the limb).
+    fr, blob, geo, sho = _leg_frame()
+    thi = blob["THI"]
+    fr.qm[thi, label.BOTTOM, 1] += 1000.0
+    label._lower(fr, geo, sho, geo.sho_h, 4.0)
+    assert fr.assign[MARKER_INDEX["R_THI"]] == thi
+    assert fr.assign[MARKER_INDEX["R_KNE"]] == blob["KNE"]
+
+
 # --- the direction of a restarted shoulder track ---------------------------------------
 
 

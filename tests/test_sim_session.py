@@ -12,6 +12,7 @@ from gaitflow.schemas.raw import RawFrame
 from gaitflow.schemas.truth import GroundTruth
 
 from gaitflow.camera import Camera
+from gaitflow.errors import ConfigError
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 from gaitflow.sim import list_trials
 from gaitflow.sim.body import build_body, knee_flexion, load_trial
@@ -291,10 +292,10 @@ def test_lateral_markers_sit_on_the_skin_while_walking(ses) -> None:
 
 
 def test_wand_markers_stand_off_the_limb_with_nothing_under_them() -> None:
-    """With ``wand_mm`` the thigh and tibia wands of this trial (48 mm off the limb) carry
-    no skin patch: the ring around their depth hole is the limb behind, while the knee and
+    """On sticks, the thigh and tibia wands of this trial (48 mm off the limb) carry no
+    skin patch: the ring around their depth hole is the limb behind, while the knee and
     ankle markers still sit on the skin."""
-    wands = simulate_session(TRIAL, seed=7, config=SimConfig.quick(wand_mm=25.0))
+    wands = simulate_session(TRIAL, seed=7, config=SimConfig.quick(wand_mount="stick"))
     rec = wands.recordings["static"]
     raw, gt = rec.frame(len(rec) // 2)
     rmark = wands.config.marker_radius_mm
@@ -307,6 +308,24 @@ def test_wand_markers_stand_off_the_limb_with_nothing_under_them() -> None:
         behind[name] = ring - (c[2] + rmark)
     assert behind["R_THI"] > 30.0 and behind["R_TIB"] > 30.0, behind
     assert abs(behind["R_KNE"]) < 15.0 and abs(behind["R_ANK"]) < 15.0, behind
+
+
+def test_wand_markers_taped_to_the_skin_sit_on_the_limb(ses) -> None:
+    """``wand_mount="skin"`` moves this trial's wands in onto the limb: the thigh and tibia
+    markers' ring is their own skin, and they stand 30+ mm nearer the limb's axis."""
+    skin = simulate_session(TRIAL, seed=7, config=SimConfig.quick(wand_mount="skin"))
+    rec = skin.recordings["static"]
+    raw, gt = rec.frame(len(rec) // 2)
+    rmark = skin.config.marker_radius_mm
+    _, gt0 = ses.recordings["static"].frame(len(rec) // 2)
+    for name in ("R_THI", "R_TIB"):
+        j = MARKER_INDEX[name]
+        c = gt.position[j]
+        ring = _ring_depth(raw.depth, gt.pixel[j], skin.camera.fx * rmark / c[2])
+        assert abs(ring - (c[2] + rmark)) < 15.0, (name, ring - c[2] - rmark)
+        assert c[2] - gt0.position[j][2] > 30.0, (name, c[2] - gt0.position[j][2])
+    with pytest.raises(ConfigError, match="wand_mount='glue'"):
+        SimConfig.quick(wand_mount="glue")
 
 
 def test_truth_is_at_mid_exposure(ses) -> None:

@@ -76,6 +76,7 @@ SEGMENT_NAMES = tuple(s[0] for s in SEGMENTS)
 # base is taped to the skin, the sphere 40-100 mm off the limb (see ``build_body``).
 WAND_SITES = {"THI": ("thigh", "thigh_lo"), "TIB": ("shank", "shank_lo")}
 WAND_RADIUS_MM = 3.0
+WAND_MOUNTS = ("patch", "stick", "skin")
 SEGMENT_INDEX = {n: i for i, n in enumerate(SEGMENT_NAMES)}
 
 
@@ -403,6 +404,37 @@ def _dist_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(p - (a + w[:, None] * ab), axis=1)
 
 
+def _wands(
+    markers: np.ndarray,
+    normals: np.ndarray,
+    cap_a: np.ndarray,
+    cap_b: np.ndarray,
+    radii: np.ndarray,
+    base_mm: float,
+    wand_mm: float,
+) -> dict[int, np.ndarray]:
+    """The wand markers: marker index -> (F,) distance (mm) of the centre off its limb's
+    surface, for THI and TIB markers whose base (``base_mm`` behind the centre) stands
+    more than ``wand_mm`` off it in the median frame."""
+    out = {}
+    for name in MARKER_NAMES:
+        side, site = name.split("_")
+        if site not in WAND_SITES:
+            continue
+        i = MARKER_INDEX[name]
+        # Off the limb's surface: the nearer of the segment's two tapering capsules.
+        stand = np.min(
+            [
+                _dist_to_segment(markers[:, i], cap_a[:, k], cap_b[:, k]) - radii[k]
+                for k in (SEGMENT_INDEX[f"{side}_{seg}"] for seg in WAND_SITES[site])
+            ],
+            axis=0,
+        )
+        if float(np.median(stand)) - base_mm > wand_mm:
+            out[i] = stand
+    return out
+
+
 def build_body(
     trial: Trial,
     marker_radius: float,
@@ -411,7 +443,8 @@ def build_body(
     static: bool = False,
     marker_base_mm: float = 2.0,
     patch_mm: float = 70.0,
-    wand_mm: float = 0.0,
+    wand_mount: str = "patch",
+    wand_mm: float = 25.0,
 ) -> Body:
     """Markers, capsules and radii for every frame of ``trial``.
 
@@ -420,11 +453,13 @@ def build_body(
     the trial). Then each marker gets a skin patch (:func:`skin_patches`) whose surface
     passes ``marker_radius + marker_base_mm`` behind the marker centre along its normal.
 
-    ``wand_mm`` > 0 models marker wands: a thigh or tibia marker whose base stands more
-    than ``wand_mm`` off its segment's surface (median over the trial) sits on a stick
-    (:data:`WAND_RADIUS_MM`) that runs from the sphere to the limb, not on a patch of skin,
-    so the ring around its depth hole is the limb behind it. 0 keeps a patch under every
-    marker.
+    ``wand_mount`` says what carries a thigh or tibia marker whose base stands more than
+    ``wand_mm`` off its limb's surface (median over the trial; the source lab put it on a
+    wand): ``"patch"`` a skin patch like every marker (a surface floating beside the limb),
+    ``"stick"`` a stick (:data:`WAND_RADIUS_MM`) from the sphere into the limb, so that the
+    ring around its depth hole is whatever lies behind it, as on a real wand, or ``"skin"``
+    none: the marker is taped to the limb, moved in along its normal until its base
+    touches the limb's surface (the paper's protocol: every marker on the skin).
     """
     m = derive_markers(trial, marker_radius)
     ends = _segment_ends(m, swing_gain, static, marker_radius)
@@ -485,30 +520,24 @@ def build_body(
         side, site = name.split("_")
         seg = own[site] if site in ("ASI", "PSI", "HIP", "SHO") else f"{side}_{own[site]}"
         rho0[MARKER_INDEX[name]] = float(np.clip(nominal[seg], 0.5 * patch_mm, 60.0))
+    wands = (
+        _wands(markers, normals, cap_a, cap_b, radii, marker_radius + marker_base_mm, wand_mm)
+        if wand_mount != "patch"
+        else {}
+    )
+    if wand_mount == "skin":
+        # Taped to the skin instead: the marker moves in along its normal onto the limb.
+        for i, stand in wands.items():
+            markers[:, i] -= (stand - marker_radius - marker_base_mm)[:, None] * normals[:, i]
+        wands = {}
     pa, pb, pr = skin_patches(
         markers, normals, axes, marker_radius, marker_base_mm, patch_mm, rho0, m["_pelvis_left"]
     )
-    if wand_mm > 0:
-        for name in MARKER_NAMES:
-            side, site = name.split("_")
-            if site not in WAND_SITES:
-                continue
-            i = MARKER_INDEX[name]
-            p, n = markers[:, i], normals[:, i]
-            # Off the limb's surface: the nearer of the segment's two tapering capsules.
-            stand = np.min(
-                [
-                    _dist_to_segment(p, cap_a[:, k], cap_b[:, k]) - radii[k]
-                    for k in (SEGMENT_INDEX[f"{side}_{seg}"] for seg in WAND_SITES[site])
-                ],
-                axis=0,
-            )
-            off = stand - marker_radius - marker_base_mm
-            if float(np.median(off)) > wand_mm:
-                # The stick reaches 5 mm into the limb so that no gap opens as it moves.
-                pa[:, i] = p - marker_radius * n
-                pb[:, i] = p - (stand + 5.0)[:, None] * n
-                pr[i] = WAND_RADIUS_MM
+    for i, stand in wands.items():
+        # The stick reaches 5 mm into the limb so that no gap opens as it moves.
+        pa[:, i] = markers[:, i] - marker_radius * normals[:, i]
+        pb[:, i] = markers[:, i] - (stand + 5.0)[:, None] * normals[:, i]
+        pr[i] = WAND_RADIUS_MM
     cap_a = np.concatenate([cap_a, pa], axis=1)
     cap_b = np.concatenate([cap_b, pb], axis=1)
     radii = np.r_[radii, pr]

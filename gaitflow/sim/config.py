@@ -33,7 +33,8 @@ class SimConfig:
     source_marker_diameter_mm: float = 14.0  # Plug-in Gait markers of the source labs
     marker_base_mm: float = 2.0  # marker base (and tape) between the sphere and the skin
     skin_patch_mm: float = 70.0  # width of the skin surface modelled under each marker
-    wand_mm: float = 0.0  # THI/TIB standing this far off the limb are on wands (0 = none)
+    wand_mount: str = "patch"  # what carries a wand marker: patch, stick or skin (body.py)
+    wand_mm: float = 25.0  # THI/TIB whose base stands this far off the limb are on wands
     # Exposure and anti-aliasing.
     exposure_ms: float = 12.0  # ToF integration window (motion blur)
     blur_samples: int = 4  # time samples over the exposure
@@ -90,6 +91,10 @@ class SimConfig:
             raise ConfigError("SimConfig.supersample and blur_samples must be >= 1")
         if self.speed_factor <= 0:
             raise ConfigError(f"SimConfig.speed_factor={self.speed_factor} must be positive")
+        if self.wand_mount not in ("patch", "stick", "skin"):
+            raise ConfigError(
+                f"SimConfig.wand_mount={self.wand_mount!r} is not one of patch, stick, skin"
+            )
         if self.n_walks < 1:
             raise ConfigError(f"SimConfig.n_walks={self.n_walks} must be >= 1")
 

@@ -266,6 +266,7 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
         cfg.arm_swing_gain,
         marker_base_mm=cfg.marker_base_mm,
         patch_mm=cfg.skin_patch_mm,
+        wand_mount=cfg.wand_mount,
         wand_mm=cfg.wand_mm,
     )
     renderer = Renderer(cfg, bank_seed=seed)

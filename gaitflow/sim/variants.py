@@ -55,9 +55,13 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
     ),
     "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
     "wands": (
-        {"wand_mm": 25.0},
-        "thigh and tibia markers standing over 25 mm off the limb are on thin wands (no skin"
-        " under the sphere)",
+        {"wand_mount": "stick"},
+        "the source lab's thigh and tibia wands (markers over 25 mm off the limb) as thin"
+        " sticks, no skin under the sphere",
+    ),
+    "skin": (
+        {"wand_mount": "skin"},
+        "the source lab's thigh and tibia wands replaced by markers taped to the limb",
     ),
     "inview": (
         {"walk_margin_mm": -400.0},

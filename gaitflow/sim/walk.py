@@ -420,6 +420,7 @@ class StaticMotion:
             static=True,
             marker_base_mm=cfg.marker_base_mm,
             patch_mm=cfg.skin_patch_mm,
+            wand_mount=cfg.wand_mount,
             wand_mm=cfg.wand_mm,
         )
         k = SEGMENT_INDEX["pelvis"]
