@@ -311,17 +311,19 @@ def test_wand_markers_stand_off_the_limb_with_nothing_under_them() -> None:
 
 
 def test_wand_markers_taped_to_the_skin_sit_on_the_limb(ses) -> None:
-    """``wand_mount="skin"`` moves this trial's wands in onto the limb: the thigh and tibia
-    markers' ring is their own skin, and they stand 30+ mm nearer the limb's axis."""
-    skin = simulate_session(TRIAL, seed=7, config=SimConfig.quick(wand_mount="skin"))
-    rec = skin.recordings["static"]
+    """The default mount (``skin``) moves this trial's wands in onto the limb: the thigh
+    and tibia markers' ring is their own skin, and they stand 30+ mm nearer the limb's
+    axis than where the source lab's wands held them (the ``patch`` mount)."""
+    assert ses.config.wand_mount == "skin"
+    patch = simulate_session(TRIAL, seed=7, config=SimConfig.quick(wand_mount="patch"))
+    rec = ses.recordings["static"]
     raw, gt = rec.frame(len(rec) // 2)
-    rmark = skin.config.marker_radius_mm
-    _, gt0 = ses.recordings["static"].frame(len(rec) // 2)
+    rmark = ses.config.marker_radius_mm
+    _, gt0 = patch.recordings["static"].frame(len(rec) // 2)
     for name in ("R_THI", "R_TIB"):
         j = MARKER_INDEX[name]
         c = gt.position[j]
-        ring = _ring_depth(raw.depth, gt.pixel[j], skin.camera.fx * rmark / c[2])
+        ring = _ring_depth(raw.depth, gt.pixel[j], ses.camera.fx * rmark / c[2])
         assert abs(ring - (c[2] + rmark)) < 15.0, (name, ring - c[2] - rmark)
         assert c[2] - gt0.position[j][2] > 30.0, (name, c[2] - gt0.position[j][2])
     with pytest.raises(ConfigError, match="wand_mount='glue'"):

@@ -33,7 +33,7 @@ class SimConfig:
     source_marker_diameter_mm: float = 14.0  # Plug-in Gait markers of the source labs
     marker_base_mm: float = 2.0  # marker base (and tape) between the sphere and the skin
     skin_patch_mm: float = 70.0  # width of the skin surface modelled under each marker
-    wand_mount: str = "patch"  # what carries a wand marker: patch, stick or skin (body.py)
+    wand_mount: str = "skin"  # what carries a wand marker: patch, stick or skin (body.py)
     wand_mm: float = 25.0  # THI/TIB whose base stands this far off the limb are on wands
     # Exposure and anti-aliasing.
     exposure_ms: float = 12.0  # ToF integration window (motion blur)

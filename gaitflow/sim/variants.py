@@ -37,7 +37,11 @@ AZURE_NFOV = Camera(
 )
 
 VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
-    "base": ({}, "the defaults: 25 mm markers, walking line 2.75 m away, camera 0.8 m high"),
+    "base": (
+        {},
+        "the defaults: 25 mm markers taped to the skin, walking line 2.75 m away, camera"
+        " 0.8 m high",
+    ),
     "d20": ({"marker_diameter_mm": 20.0}, "20 mm markers"),
     "d30": ({"marker_diameter_mm": 30.0}, "30 mm markers"),
     "near": ({"walk_distance_mm": 2000.0}, "walking line 2.0 m from the camera"),
@@ -59,9 +63,10 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "the source lab's thigh and tibia wands (markers over 25 mm off the limb) as thin"
         " sticks, no skin under the sphere",
     ),
-    "skin": (
-        {"wand_mount": "skin"},
-        "the source lab's thigh and tibia wands replaced by markers taped to the limb",
+    "patch": (
+        {"wand_mount": "patch"},
+        "the default before 27 Nov: a skin patch floating under each of the source lab's"
+        " thigh and tibia wands",
     ),
     "inview": (
         {"walk_margin_mm": -400.0},
