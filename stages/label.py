@@ -1638,7 +1638,8 @@ LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
 # them; without one, against its own last depth. Not the knee against the thigh wand: the
 # thigh wand's depth (its bottom mode, the output's) is often a layer behind it, and with
 # the wand matched on its nearest layer such frames are labelled (the knee then followed
-# the wrong reference: seed 0 knee 1.37 / 1.92 deg against 1.26 / 2.09 without it).
+# the wrong reference: seed 0 knee 1.37 / 1.92 deg against 1.26 / 2.09 without it, on
+# the simulator's old patch mount).
 LAYER_REF = {"ANK": "TIB"}
 
 

@@ -8,10 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from gaitflow.errors import InputError
+from gaitflow.errors import ConfigError, InputError
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 from gaitflow.sim.body import (
     SEGMENT_INDEX,
+    SEGMENT_NAMES,
+    WAND_RADIUS_MM,
     build_body,
     derive_markers,
     load_trial,
@@ -60,6 +62,32 @@ def test_heel_rule_close_to_real_heel(trial: str) -> None:
     for side in ("L", "R"):
         err = np.linalg.norm(d[f"{side}_HEE"] - tr.markers[f"{side}_HEE"], axis=1)
         assert np.median(err) < 40.0
+
+
+def test_only_markers_standing_off_the_limb_are_wands() -> None:
+    # CGM24's thigh and tibia markers are on the skin (5-17 mm off the capsule limb): no
+    # mount touches them. Motion3's stand 77-107 mm off: on sticks they get a 6 mm stick
+    # instead of a patch, taped to the skin they move in onto the limb.
+    S = len(SEGMENT_NAMES)
+    wands = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("THI", "TIB")]
+    cgm = load_trial("c3dorg_s00_vicon_CGM24")
+    a, b = build_body(cgm, 12.5, wand_mount="patch"), build_body(cgm, 12.5, wand_mount="stick")
+    np.testing.assert_array_equal(a.radius, b.radius)
+    np.testing.assert_array_equal(a.markers, build_body(cgm, 12.5).markers)
+    m3 = load_trial("btk_PiG_Motion3_FF")
+    patch, stick = (
+        build_body(m3, 12.5, wand_mount="patch"),
+        build_body(m3, 12.5, wand_mount="stick"),
+    )
+    assert (stick.radius[S + np.array(wands)] == WAND_RADIUS_MM).all()
+    assert (patch.radius[S + np.array(wands)] > WAND_RADIUS_MM).all()
+    skin = build_body(m3, 12.5)  # the default mount
+    moved = np.linalg.norm(skin.markers[:, wands] - patch.markers[:, wands], axis=2)
+    assert np.median(moved) > 50.0
+    others = [i for i in range(20) if i not in wands]
+    np.testing.assert_allclose(skin.markers[:, others], patch.markers[:, others])
+    with pytest.raises(ConfigError, match="wand_mount='glue'"):
+        build_body(m3, 12.5, wand_mount="glue")
 
 
 def test_markers_sit_outside_their_segment() -> None:

@@ -39,8 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from gaitflow.errors import InputError
+from gaitflow.errors import ConfigError, InputError
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
+from gaitflow.sim.config import WAND_MOUNTS
 
 SIDES = ("L", "R")
 REQUIRED = ("ASI", "THI", "KNE", "TIB", "ANK", "TOE")
@@ -76,7 +77,6 @@ SEGMENT_NAMES = tuple(s[0] for s in SEGMENTS)
 # base is taped to the skin, the sphere 40-100 mm off the limb (see ``build_body``).
 WAND_SITES = {"THI": ("thigh", "thigh_lo"), "TIB": ("shank", "shank_lo")}
 WAND_RADIUS_MM = 3.0
-WAND_MOUNTS = ("patch", "stick", "skin")
 SEGMENT_INDEX = {n: i for i, n in enumerate(SEGMENT_NAMES)}
 
 
@@ -443,7 +443,7 @@ def build_body(
     static: bool = False,
     marker_base_mm: float = 2.0,
     patch_mm: float = 70.0,
-    wand_mount: str = "patch",
+    wand_mount: str = "skin",
     wand_mm: float = 25.0,
 ) -> Body:
     """Markers, capsules and radii for every frame of ``trial``.
@@ -461,6 +461,8 @@ def build_body(
     none: the marker is taped to the limb, moved in along its normal until its base
     touches the limb's surface (the paper's protocol: every marker on the skin).
     """
+    if wand_mount not in WAND_MOUNTS:
+        raise ConfigError(f"wand_mount={wand_mount!r} is not one of {', '.join(WAND_MOUNTS)}")
     m = derive_markers(trial, marker_radius)
     ends = _segment_ends(m, swing_gain, static, marker_radius)
     # Push markers outwards by the change of marker radius, along the normal of the closest

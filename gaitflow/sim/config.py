@@ -13,6 +13,9 @@ from typing import Any
 from gaitflow.camera import Camera
 from gaitflow.errors import ConfigError
 
+# What carries a thigh or tibia marker that the source lab put on a wand (sim/body.py).
+WAND_MOUNTS = ("patch", "stick", "skin")
+
 
 @dataclass(frozen=True)
 class SimConfig:
@@ -91,9 +94,9 @@ class SimConfig:
             raise ConfigError("SimConfig.supersample and blur_samples must be >= 1")
         if self.speed_factor <= 0:
             raise ConfigError(f"SimConfig.speed_factor={self.speed_factor} must be positive")
-        if self.wand_mount not in ("patch", "stick", "skin"):
+        if self.wand_mount not in WAND_MOUNTS:
             raise ConfigError(
-                f"SimConfig.wand_mount={self.wand_mount!r} is not one of patch, stick, skin"
+                f"SimConfig.wand_mount={self.wand_mount!r} is not one of {', '.join(WAND_MOUNTS)}"
             )
         if self.n_walks < 1:
             raise ConfigError(f"SimConfig.n_walks={self.n_walks} must be >= 1")
