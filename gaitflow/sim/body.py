@@ -522,24 +522,26 @@ def build_body(
         side, site = name.split("_")
         seg = own[site] if site in ("ASI", "PSI", "HIP", "SHO") else f"{side}_{own[site]}"
         rho0[MARKER_INDEX[name]] = float(np.clip(nominal[seg], 0.5 * patch_mm, 60.0))
+    base = marker_radius + marker_base_mm
     wands = (
-        _wands(markers, normals, cap_a, cap_b, radii, marker_radius + marker_base_mm, wand_mm)
-        if wand_mount != "patch"
-        else {}
+        {}
+        if wand_mount == "patch"
+        else _wands(markers, normals, cap_a, cap_b, radii, base, wand_mm)
     )
     if wand_mount == "skin":
-        # Taped to the skin instead: the marker moves in along its normal onto the limb.
+        # Taped to the skin instead: the marker moves in along its normal onto the limb,
+        # and gets its patch there like any other.
         for i, stand in wands.items():
-            markers[:, i] -= (stand - marker_radius - marker_base_mm)[:, None] * normals[:, i]
-        wands = {}
+            markers[:, i] -= (stand - base)[:, None] * normals[:, i]
     pa, pb, pr = skin_patches(
         markers, normals, axes, marker_radius, marker_base_mm, patch_mm, rho0, m["_pelvis_left"]
     )
-    for i, stand in wands.items():
-        # The stick reaches 5 mm into the limb so that no gap opens as it moves.
-        pa[:, i] = markers[:, i] - marker_radius * normals[:, i]
-        pb[:, i] = markers[:, i] - (stand + 5.0)[:, None] * normals[:, i]
-        pr[i] = WAND_RADIUS_MM
+    if wand_mount == "stick":
+        for i, stand in wands.items():
+            # The stick reaches 5 mm into the limb so that no gap opens as it moves.
+            pa[:, i] = markers[:, i] - marker_radius * normals[:, i]
+            pb[:, i] = markers[:, i] - (stand + 5.0)[:, None] * normals[:, i]
+            pr[i] = WAND_RADIUS_MM
     cap_a = np.concatenate([cap_a, pa], axis=1)
     cap_b = np.concatenate([cap_b, pb], axis=1)
     radii = np.r_[radii, pr]
