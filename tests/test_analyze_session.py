@@ -80,3 +80,30 @@ def test_inline_and_bus_give_identical_results(tiny_session: Path, tmp_path: Pat
     assert a[1].warnings and any(
         "never seen" in w or w == NO_SUMMARY or "no walking pass" in w for w in a[1].warnings
     )
+
+
+@pytest.mark.slow
+def test_analyze_files_a_session_in_the_patient_store(
+    tiny_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--store``: the results under STORE/<camera.json subject.id>/<session>/, a session
+    record beside them, and ``gaitflow progress`` reading them back."""
+    subject = json.loads((tiny_session / "camera.json").read_text())["subject"]["id"]
+    store = tmp_path / "clinic"
+    argv = ["analyze", str(tiny_session), "--store", str(store), "--inline", "-q"]
+    assert main([*argv, "--date", "2026-11-21"]) == 0
+    folder = store / subject / "S01"
+    record = json.loads((folder / "session.json").read_text())
+    assert record["subject"] == subject and record["date"] == "2026-11-21"
+    assert record["trials"] == ["walk-01", "walk-02"]
+    walk = json.loads((folder / "walk-01.json").read_text())
+    assert validation_errors(walk) == [] and walk["session"] == "S01"
+    capsys.readouterr()
+    assert main(["progress", str(store), subject]) == 0
+    out = capsys.readouterr().out
+    assert "2026-11-21" in out and "S01" in out
+    assert (store / subject / "progress.html").exists()
+    # --out and --store together, or --date without a store: refused, nothing run
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    assert main(["analyze", str(tiny_session), "--out", str(tmp_path / "o"), "--date", "x"]) == 2
+    assert not (tmp_path / "o").exists()

@@ -17,6 +17,13 @@ Bad input: a session without ``calibration/`` or ``static/`` stops with an error
 missing folder (no fallback: the floor plane and the subject model cannot be guessed
 reliably from a walk, and a wrong floor would silently bias every event). A walking trial in
 which the subject is never seen gets a valid, empty result with a warning.
+
+``--store STORE`` files the results in a patient store instead of ``--out``:
+``STORE/<subject>/<session>/`` with a ``session.json`` record (``gaitflow.patients``), the
+subject being camera.json's ``subject.id`` (or ``--subject``) and the visit's date the
+``YYYY-MM-DD`` in the session folder's name (or ``--date``). ``gaitflow progress STORE
+SUBJECT`` then shows the subject's figures over the visits. Analysing a session again
+replaces its folder's results.
 """
 
 from __future__ import annotations
@@ -52,6 +59,16 @@ class TrialOutcome:
     json_path: Path | None = None
     html_path: Path | None = None
     warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class StoreTarget:
+    """Where ``analyze --store`` files a session: the store's root, and the subject id and
+    visit date when not taken from camera.json and the session's name."""
+
+    root: Path
+    subject: str | None = None
+    date: str | None = None
 
 
 def _collect(
@@ -205,24 +222,39 @@ def run_bus_session(
 
 def analyze_session(
     root: str | Path,
-    out: str | Path,
+    out: str | Path | None,
     inline: bool = False,
     params: Mapping[str, Mapping[str, Any]] | None = None,
     quiet: bool = True,
     report: bool = True,
+    store: StoreTarget | None = None,
 ) -> list[TrialOutcome]:
-    """Analyse a session folder; write ``<trial>.json`` and ``<trial>.html`` into ``out``."""
+    """Analyse a session folder; write ``<trial>.json`` and ``<trial>.html`` into ``out``.
+
+    With ``store``, ``out`` defaults to the session's folder in the patient store
+    (``STORE/<subject>/<session>/``, :mod:`gaitflow.patients`), and a ``session.json``
+    record is written beside the results. The subject and the session name are checked
+    before anything is run.
+    """
+    from gaitflow.patients import session_date, session_dir, subject_of, write_manifest
     from gaitflow.session import SessionReader
 
     root = Path(root)
     reader = SessionReader(root)
     reader.require()  # InputError naming calibration/ or static/ if missing
+    name = root.resolve().name
+    if store is not None:
+        subject = subject_of(reader.camera_doc, store.subject)
+        visit = session_date(name, store.date)
+        out = out if out is not None else session_dir(store.root, subject, name)
+    if out is None:
+        raise InputError("gaitflow analyze", "give --out DIR or --store STORE")
     walks = [n for n in reader.recordings() if trial_kind(n) == "walk"]
     if not walks:
         raise InputError(root, "no walking recording (walk-NN/) in the session folder")
     run = run_inline_session if inline else run_bus_session
     summaries = run(root, params, quiet)
-    docs = _collect(summaries, walks, root.resolve().name)
+    docs = _collect(summaries, walks, name)
     outdir = Path(out)
     outdir.mkdir(parents=True, exist_ok=True)
     outcomes = []
@@ -231,6 +263,8 @@ def analyze_session(
         jp = write_results(doc, outdir / f"{w}.json")
         hp = write_report(doc, outdir / f"{w}.html") if report else None
         outcomes.append(TrialOutcome(w, doc, jp, hp, list(doc.get("warnings", []))))
+    if store is not None:
+        write_manifest(outdir, subject, name, visit, walks)
     return outcomes
 
 
@@ -289,12 +323,18 @@ def _param_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    store = StoreTarget(args.store, args.subject, args.date) if args.store else None
+    if store is not None and args.out:
+        raise InputError("--out/--store", "give one: --store files the results in the store")
+    if store is None and (args.subject or args.date):
+        raise InputError("--subject/--date", "they file a session in a store: give --store too")
     outcomes = analyze_session(
         args.session_dir,
         args.out,
         inline=args.inline,
         params=_param_overrides(args.param or []),
         quiet=args.quiet,
+        store=store,
     )
     print(summary_table(outcomes, f"gaitflow analyze {args.session_dir}"))
     for o in outcomes:
@@ -311,10 +351,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Examples:\n  gaitflow analyze sessions/S01 --out out/S01\n"
+        "  gaitflow analyze sessions/S01-2026-11-21 --store clinic\n"
+        "  gaitflow progress clinic S01\n"
         "  gaitflow analyze sessions/S01 --out out/S01 --inline --param gait.xi=0.33",
     )
     p.add_argument("session_dir", type=Path, help="session folder (camera.json, walk-01/, ...)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, help="output folder (required unless --store)")
+    p.add_argument(
+        "--store",
+        type=Path,
+        help="patient store: file the results under STORE/<subject>/<session>/ "
+        "(see gaitflow progress)",
+    )
+    p.add_argument("--subject", help="with --store: subject id (default: camera.json subject.id)")
+    p.add_argument(
+        "--date", help="with --store: the visit's date YYYY-MM-DD (default: from the session name)"
+    )
     p.add_argument("--inline", action="store_true", help="run the stages in this process")
     p.add_argument(
         "--param",
