@@ -467,6 +467,22 @@ def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) ->
     return out
 
 
+OUTLIER_REF_FPS = 30.0  # the frame rate the outlier bounds are given for
+
+
+def outlier_bound(max_dev_mm: float, fps: float) -> float:
+    """A :func:`reject_outliers` bound given at 30 fps, for a camera running at ``fps``.
+
+    Smooth motion departs from the median of its neighbours by about its acceleration times
+    the frame interval squared, so below 30 fps the bound grows with (30 / fps)^2 (four times
+    at 15 fps, where a swinging ankle's real samples would otherwise be dropped); above 30
+    fps it stays as given. ``max_dev_mm <= 0`` (off) is returned unchanged.
+    """
+    if max_dev_mm <= 0 or not fps > 0:
+        return max_dev_mm
+    return max_dev_mm * max(1.0, (OUTLIER_REF_FPS / fps) ** 2)
+
+
 def nanmedian_last(x: np.ndarray) -> np.ndarray:
     """Median over the last axis ignoring NaN, NaN where all are NaN; (..., K) -> (...).
 

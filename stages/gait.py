@@ -12,7 +12,8 @@ trial, or ``finish``).
 Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
 
 1. times from the capture clock (s from the trial's first frame, frame drops stay gaps);
-   a heel or toe sample far from its neighbours' median is dropped (``foot_outlier_mm``),
+   a heel or toe sample far from its neighbours' median is dropped (``foot_outlier_mm``,
+   given for 30 fps and scaled by (30/fps)^2 below: ``gaitcore.outlier_bound``),
    and each marker's depth is smoothed along its viewing ray (``depth_smooth_s``), a depth
    far from its running median taken as a wrong layer (``depth_outlier_mm``; not for heel,
    toe and ankle);
@@ -95,7 +96,8 @@ PARAMS = ParamSet(
             float,
             25.0,
             "mm",
-            "knee markers: one this far from the median of its 4 neighbours is dropped (0=off)",
+            "knee markers: one this far from the median of its 4 neighbours is dropped, at "
+            "30 fps; x (30/fps)^2 below (0=off)",
             0.0,
         ),
         Param(
@@ -103,8 +105,8 @@ PARAMS = ParamSet(
             float,
             100.0,
             "mm",
-            "heel and toe markers: one this far from the median of its 4 neighbours is dropped "
-            "(0=off)",
+            "heel and toe markers: one this far from the median of its 4 neighbours is dropped, "
+            "at 30 fps; x (30/fps)^2 below (0=off)",
             0.0,
         ),
         Param(
@@ -474,7 +476,8 @@ def analyse(
     # heel of the other foot, say) makes a false contact and a gross step; the bound is
     # far above what a foot's own motion departs from its neighbours' median (heel strike
     # decelerations give a few tens of mm at 30 fps), so real samples stay
-    pos[:, FOOT_MARKERS] = gc.reject_outliers(pos[:, FOOT_MARKERS], p["foot_outlier_mm"])
+    foot_bound = gc.outlier_bound(p["foot_outlier_mm"], fps)
+    pos[:, FOOT_MARKERS] = gc.reject_outliers(pos[:, FOOT_MARKERS], foot_bound)
     pos = gc.smooth_depth(
         t, pos, p["depth_smooth_s"], p["depth_outlier_mm"], p["depth_outlier_s"], LAYER_CHECKED
     )
@@ -498,7 +501,7 @@ def analyse(
     if not live:
         # the knee markers alone go through the outlier filter: a dropped heel sample in a
         # fast swing would cost an event, a dropped knee sample only a filled gap
-        kpos = gc.reject_outliers(pos[:, KNEE_MARKERS], p["outlier_mm"])
+        kpos = gc.reject_outliers(pos[:, KNEE_MARKERS], gc.outlier_bound(p["outlier_mm"], fps))
         if p["segment_tol"] > 0:
             # a wrong hip, knee or ankle sample is dropped before the gap filler, which
             # would otherwise bend the filled curve through it for the frames around

@@ -364,6 +364,23 @@ def test_reject_outliers_drops_a_wrong_label_but_keeps_smooth_motion():
     np.testing.assert_array_equal(gc.reject_outliers(pos, 0.0), pos)
 
 
+def test_the_outlier_bound_follows_the_frame_interval_below_30_fps():
+    # A swinging ankle: 2 m/s plus a 40 m/s^2 swing acceleration (a t^2 / 2 along x)
+    # departs from its neighbours' median by 22 mm at 30 fps and 89 mm at 15 (x4).
+    for fps in (30.0, 15.0):
+        t = np.arange(24) / fps
+        pos = np.zeros((24, 1, 3))
+        pos[:, 0, 0] = 2000.0 * t + 0.5 * 40000.0 * t**2
+        pos[9, 0, 1] = 300.0  # one frame on another marker 300 mm away
+        kept = gc.reject_outliers(pos, gc.outlier_bound(60.0, fps))
+        assert np.isnan(kept[9]).all(), fps
+        assert np.isfinite(np.delete(kept, 9, axis=0)).all(), fps
+    # at 15 fps the 30 fps bound would drop real samples of the same motion
+    assert np.isnan(gc.reject_outliers(pos, 60.0)[2:-2]).any()
+    assert gc.outlier_bound(25.0, 30.0) == gc.outlier_bound(25.0, 60.0) == 25.0
+    assert gc.outlier_bound(25.0, 15.0) == 100.0 and gc.outlier_bound(0.0, 15.0) == 0.0
+
+
 def test_segment_outliers_flags_a_changed_length():
     a = np.zeros((10, 3))
     b = np.tile([0.0, 400.0, 0.0], (10, 1))

@@ -315,13 +315,21 @@ def _truth_knees(ses: Any, name: str, t: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def run_markers_level(
-    trial: str, seed: int, noise_mm: float, params: Mapping[str, Any] | None = None
+    trial: str,
+    seed: int,
+    noise_mm: float,
+    params: Mapping[str, Any] | None = None,
+    variant: str = "base",
 ) -> tuple[dict[str, Any], dict[str, Any], np.ndarray, np.ndarray, np.ndarray]:
-    """Simulate, analyse with the gait stage alone; return (doc, truth, t, knee, pig)."""
+    """Simulate, analyse with the gait stage alone; return (doc, truth, t, knee, pig).
+
+    ``variant`` changes the simulated walk (its frame times: ``fps15``, ``slow``); set-ups
+    that change only the images give the same markers."""
     from gaitflow.sim import simulate_session
+    from gaitflow.sim.variants import sim_config
     from gaitflow.stages import gait as gait_stage
 
-    ses = simulate_session(trial, seed)
+    ses = simulate_session(trial, seed, sim_config(variant, quick=False))
     name = ses.walks()[0]
     cal = _true_calibration(ses, name)
     state = gait_stage.init(gait_stage.PARAMS.resolve(params or {}))
@@ -465,7 +473,7 @@ def run(args: argparse.Namespace) -> int:
         if args.level == "markers":
             gait_params = {**params, **_stage_params(args.param).get("gait", {})}
             doc, truth, t, knee, pig = run_markers_level(
-                trial, args.seed, args.noise_mm, gait_params
+                trial, args.seed, args.noise_mm, gait_params, args.variant
             )
         else:
             doc, truth, t, knee, pig, label = run_pipeline_level(
@@ -616,7 +624,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--variant",
         default="base",
         choices=list(VARIANTS),
-        help="pipeline level: simulated set-up (gaitflow.sim.variants): "
+        help="simulated set-up (gaitflow.sim.variants; at the markers level only what moves "
+        "the markers or their frame times matters): "
         + "; ".join(f"{k}: {v[1]}" for k, v in VARIANTS.items()),
     )
     p.add_argument("--xi", type=float, default=None, help="override Alg. 6 xi = phi")

@@ -58,6 +58,10 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "twice the depth noise, three times the IR read noise, more flying pixels",
     ),
     "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
+    "fps15": (
+        {"camera": Camera(fps=15.0)},
+        "15 frames/s (a sensor mode, or a tool that keeps every other frame)",
+    ),
     "wands": (
         {"wand_mount": "stick"},
         "the source lab's thigh and tibia wands (markers over 25 mm off the limb) as thin"
