@@ -58,6 +58,10 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "twice the depth noise, three times the IR read noise, more flying pixels",
     ),
     "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
+    "skew": (
+        {"pan_deg": 6.0, "roll_deg": 3.0},
+        "camera turned 6 deg along the walkway and rolled 3 deg (a tripod set up by hand)",
+    ),
     "fps15": (
         {"camera": Camera(fps=15.0)},
         "15 frames/s (a sensor mode, or a tool that keeps every other frame)",
