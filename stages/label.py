@@ -68,7 +68,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 
 Published positions: each marker's own cluster mode (a knee, tibia or ankle may take the
 bottom mode's layer when that one fits better the depth of a marker on the same segment,
-or without one continues its own depth, ``leg_layer``). The heels are
+or without one continues its own depth, ``leg_layer``; a hip, whose own mode is the bottom
+one, may likewise take the normal mode's layer when that one continues its depth). The
+heels are
 published at their surface point (``heel_side_on``, departure): locate puts every marker
 one radius plus base in front of the surface it sits on (``surface_offset_mm``), right
 for a marker facing the camera; a heel marker sits on the back of the heel and is seen
@@ -124,8 +126,9 @@ PARAMS = ParamSet(
             str,
             "track",
             "",
-            "knee, tibia, ankle: own cluster mode, or the bottom mode's layer where it fits "
-            "a wand on the same segment, or continues the last depth (departure)",
+            "knee, tibia, ankle (hip): own cluster mode, or the bottom (normal) mode's layer "
+            "where it fits a wand on the same segment, or continues the last depth "
+            "(departure)",
             choices=("own", "track"),
         ),
         Param(
@@ -942,7 +945,7 @@ def label_frame(
         # front puts the own mode's layer 100+ mm too near for a frame, and the track's
         # depth velocity then sent its next predictions off by that much per frame.
         bot = fm[assign[ii], BOTTOM]
-        better = _bottom_continues(cur[:, 1], bot[:, 1], last[ii, 1])
+        better = _layer_continues(cur[:, 1], bot[:, 1], last[ii, 1])
         cur = np.where((np.isin(ii, LEG) & fresh & better)[:, None], bot, cur)
         vel[ii] = np.where(fresh[:, None], (cur - last[ii]) / age[:, None], 0.0)
         last[ii] = cur
@@ -1629,6 +1632,14 @@ def _accept(
 # Leg markers whose layer is chosen by depth continuity (``leg_layer="track"``, _output).
 LEG = np.array([MARKER_INDEX[f"{side}_{m}"] for side in "LR" for m in ("KNE", "TIB", "ANK")])
 BOTTOM = CLUSTER_MODES.index("bottom")
+NORMAL = CLUSTER_MODES.index("normal")
+# The hip's own mode is the bottom one (the swinging arm in front of it), whose far layer,
+# with no arm there, can be the far leg or pelvis 70-130 mm behind the hip: its layer is
+# chosen too, between the bottom and the normal mode.
+HIPS = np.array([MARKER_INDEX[f"{side}_HIP"] for side in "LR"])
+LAYERED = np.concatenate([LEG, HIPS])
+# The other layer each of them may take instead of its own mode's.
+ALT_MODE = np.where(np.isin(np.arange(20), HIPS), NORMAL, BOTTOM)
 # A leg marker's depth (its lateral position in a side view) moves a few mm per frame; a
 # layer this much closer to the reference depth (see LAYER_REF) than the own mode's wins.
 LAYER_GAIN_MM = 20.0
@@ -1657,11 +1668,11 @@ def layer_reference(geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
     return ref, off
 
 
-def _bottom_continues(own: np.ndarray, bottom: np.ndarray, last: np.ndarray) -> np.ndarray:
-    """Where the bottom mode's depth continues the last one better than the own mode's by
-    ``LAYER_GAIN_MM`` (same-shape arrays of depths, mm; NaN anywhere = no)."""
+def _layer_continues(own: np.ndarray, alt: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Where another mode's depth (``alt``) continues the last one better than the own
+    mode's by ``LAYER_GAIN_MM`` (same-shape arrays of depths, mm; NaN anywhere = no)."""
     with np.errstate(invalid="ignore"):
-        return np.abs(bottom - last) + LAYER_GAIN_MM < np.abs(own - last)
+        return np.abs(alt - last) + LAYER_GAIN_MM < np.abs(own - last)
 
 
 def fill_modes(pos: np.ndarray) -> np.ndarray:
@@ -1718,7 +1729,9 @@ def _output(
     knee, tibia or ankle marker whose own-mode layer is the nearest surface in its window
     takes the bottom mode's layer instead when that one continues its last depth (within
     ``LAYER_MAX_AGE`` frames) better by ``LAYER_GAIN_MM``: a hand or the other leg passing
-    in front makes the nearest layer tens of mm too near for a few frames (departure).
+    in front makes the nearest layer tens of mm too near for a few frames (departure). A
+    hip (own mode bottom) takes the normal mode's layer by the same rule: with no arm in
+    front, its bottom layer can be the far leg or pelvis 70-130 mm behind it.
 
     ``ref`` (:func:`layer_reference`) makes the choice against a marker of the same segment
     seen in the frame instead (``LAYER_REF``: the ankle against the tibia wand, at the
@@ -1736,7 +1749,7 @@ def _output(
     frame = mk.header.frame
     if prev is not None:
         zp, seen = prev
-        for k in LEG:
+        for k in LAYERED:
             bk = assign[k]
             if bk < 0:
                 continue
@@ -1747,8 +1760,9 @@ def _output(
                 last = zp[k]
             else:
                 continue
-            if _bottom_continues(pos[bk, OWN_MODE[k], 2], pos[bk, BOTTOM, 2], last):
-                mode[k] = BOTTOM
+            alt = ALT_MODE[k]
+            if _layer_continues(pos[bk, OWN_MODE[k], 2], pos[bk, alt, 2], last):
+                mode[k] = alt
     position[ii] = pos[b, mode[ii]]
     if side_on is not None:
         k = np.flatnonzero(side_on & (assign >= 0))

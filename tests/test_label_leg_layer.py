@@ -47,7 +47,32 @@ def test_a_hand_in_front_of_the_knee_gives_way_to_the_layer_that_continues_it() 
     assert out.position[KNE, 2] == 2610.0
     out, prev = label._output(_markers(1, 2520.0, 2612.0), _assign(), 1, "L", prev)
     assert out.position[KNE, 2] == 2612.0
-    assert out.position[HIP, 2] == 2600.0  # not a leg marker: its own mode
+    assert out.position[HIP, 2] == 2600.0  # one layer: its own mode
+
+
+def _hip(frame: int, normal_z: float, bottom_z: float) -> Markers3D:
+    """Blob 0 a hip with its normal (and top) and bottom layers at the given depths."""
+    mk = _markers(frame, 2610.0, 2610.0)
+    pos = mk.position.copy()
+    pos[0, :2, 2] = normal_z
+    pos[0, 2, 2] = bottom_z
+    return dataclasses.replace(mk, position=pos, depth=pos[:, :, 2].copy())
+
+
+def test_a_hip_takes_the_normal_layer_where_its_bottom_one_is_the_body_behind_it() -> None:
+    # The hip's own mode is the bottom one, for the arm that swings in front of it. With no
+    # arm there, the bottom layer can be the far leg 125 mm behind: the normal layer
+    # continues the hip's depth and is published (a frame later, the arm: bottom again).
+    prev = (np.full(20, np.nan), np.full(20, -(10**9)))
+    out, prev = label._output(_hip(0, 2600.0, 2600.0), _assign(), 1, "L", prev)
+    assert out.position[HIP, 2] == 2600.0
+    out, prev = label._output(_hip(1, 2603.0, 2728.0), _assign(), 1, "L", prev)
+    assert out.position[HIP, 2] == 2603.0
+    out, prev = label._output(_hip(2, 2540.0, 2604.0), _assign(), 1, "L", prev)
+    assert out.position[HIP, 2] == 2604.0
+    # without a recent depth of its own the bottom mode stands
+    out, _ = label._output(_hip(2, 2603.0, 2728.0), _assign(), 1, "L", None)
+    assert out.position[HIP, 2] == 2728.0
 
 
 def test_without_a_recent_depth_the_own_mode_stands() -> None:
