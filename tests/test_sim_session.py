@@ -72,6 +72,21 @@ def test_timestamps_jitter_and_drops() -> None:
     assert raw.header.last and raw.header.trial == "walk-01"
 
 
+def test_the_walk_back_can_leave_the_walking_line(ses) -> None:
+    # return_offset_mm: the subject walks back 300 mm farther from the camera; the walk
+    # out stays where it was (world y = away from the camera).
+    off = simulate_session(TRIAL, seed=7, config=SimConfig.quick(return_offset_mm=300.0))
+    pelvis = [MARKER_INDEX[n] for n in ("L_ASI", "R_ASI", "L_PSI", "R_PSI")]
+    depth = {}
+    for name, s in (("base", ses), ("offset", off)):
+        wm = s.recordings["walk-01"].motion
+        for p in wm.passes:
+            t = p.t0 + np.linspace(0.2, 0.8, 7) * wm.pass_dur
+            depth[name, p.name] = wm.markers_caps(t)[0][:, pelvis, 1].mean()
+    assert depth["offset", "out"] == pytest.approx(depth["base", "out"], abs=0.1)
+    assert depth["offset", "back"] - depth["base", "back"] == pytest.approx(300.0, abs=0.1)
+
+
 def test_messages_round_trip(ses) -> None:
     raw, gt = ses.recordings["walk-01"].frame(30)
     assert raw.ir.dtype == np.uint16 and raw.ir.shape == (424, 512)

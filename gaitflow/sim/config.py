@@ -81,6 +81,7 @@ class SimConfig:
     lead_in_s: float = 0.3  # still standing before each pass
     n_walks: int = 1
     walk_margin_mm: float = 1000.0  # each pass starts and ends this far outside the image
+    return_offset_mm: float = 0.0  # the return pass this much farther from the camera
     show_operator: bool = True
 
     def __post_init__(self) -> None:

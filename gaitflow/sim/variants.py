@@ -62,6 +62,14 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         {"pan_deg": 6.0, "roll_deg": 3.0},
         "camera turned 6 deg along the walkway and rolled 3 deg (a tripod set up by hand)",
     ),
+    "drops": (
+        {"drop_prob": 0.05},
+        "one frame in 20 dropped by the sensor or the recording tool (the default: 1 in 100)",
+    ),
+    "offline": (
+        {"return_offset_mm": 300.0},
+        "the walk back 0.3 m farther from the camera than the walk out (off the taped line)",
+    ),
     "fps15": (
         {"camera": Camera(fps=15.0)},
         "15 frames/s (a sensor mode, or a tool that keeps every other frame)",

@@ -207,7 +207,7 @@ class WalkMotion:
         ret = Pass(
             self.pass_dur + cfg.turn_s,
             rot_z(np.pi),
-            np.array([x_view + x_mid, D + y_mean, 0.0]),
+            np.array([x_view + x_mid, D + cfg.return_offset_mm + y_mean, 0.0]),
             "back",
             pre,
             post,
