@@ -22,6 +22,7 @@ Conventions: lengths mm, times s, angles degrees, speed m/s; NaN = not measured.
 
 from __future__ import annotations
 
+import csv
 import html
 import json
 import math
@@ -253,6 +254,31 @@ def progress_table(
     sym = [float(f["step_symmetry_pct"]) for f in figs]
     rows.append(("step symmetry (L vs R), %", 1, sym, float("nan")))
     return header, rows
+
+
+def write_progress_csv(sessions: Sequence[SessionRecord], path: str | Path) -> Path:
+    """The progress table for a spreadsheet: one row per visit (date, session, then one
+    column per figure, the per-side ones as ``<key>_L`` / ``<key>_R``); empty = unknown."""
+    figs = [session_figures(r.docs) for r in sessions]
+    keys: list[tuple[str, str | None]] = [("trials", None), ("steps", None)]
+    for key, _, _, per_side, _ in FIGURES:
+        keys += [(key, s) for s in (("L", "R") if per_side else (None,))]
+    keys.append(("step_symmetry_pct", None))
+    header = ["date", "session", *(f"{k}_{s}" if s else k for k, s in keys)]
+    p = Path(path)
+    with p.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for rec, fig in zip(sessions, figs, strict=True):
+            vals = [_value(fig, k, s) for k, s in keys]
+            w.writerow(
+                [
+                    rec.date or "",
+                    rec.session,
+                    *(f"{v:.6g}" if math.isfinite(v) else "" for v in vals),
+                ]
+            )
+    return p
 
 
 def _signed(v: float, nd: int) -> str:

@@ -7,6 +7,7 @@ times s, knee flexion deg; NaN (null) = not measured.
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import re
@@ -27,6 +28,7 @@ from gaitflow.patients import (
     session_figures,
     subject_of,
     write_manifest,
+    write_progress_csv,
 )
 from gaitflow.report import write_report
 from gaitflow.results import build_results, write_results
@@ -128,6 +130,11 @@ def test_sessions_are_read_back_in_visit_order(tmp_path: Path) -> None:
     step_l = next(r for r in rows if r[0] == "step length L, mm")
     assert step_l[2] == pytest.approx([605.0, 645.0, 665.0]) and step_l[3] == pytest.approx(60.0)
     assert "+60" in format_progress("S01", sessions)
+    text = write_progress_csv(sessions, tmp_path / "p.csv").read_text()
+    rows = list(csv.DictReader(text.splitlines()))
+    assert [r["date"] for r in rows] == ["2026-11-21", "2026-12-05", ""]
+    assert [float(r["step_length_mm_L"]) for r in rows] == [605.0, 645.0, 665.0]
+    assert rows[0]["speed_m_s"] and rows[0]["trials"] == "1"
 
 
 def test_an_unreadable_file_is_named_counted_and_the_rest_shown(
