@@ -141,6 +141,11 @@ def _read_manifest(p: Path) -> dict[str, Any]:
     for key in ("session", "trials", "analysed_at"):
         if key not in doc:
             raise InputError(p, f"session record without {key!r}")
+    trials = doc["trials"]
+    if not isinstance(trials, list) or not all(
+        isinstance(t, str) and SAFE_NAME.match(t) for t in trials
+    ):
+        raise InputError(p, f"session record 'trials' is not a list of trial names: {trials!r}")
     return doc
 
 
@@ -203,11 +208,8 @@ def session_figures(docs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {"trials": len(docs)}
     for key in ("speed_m_s", "cadence_steps_per_min"):
         out[key] = _mean([d["spatiotemporal"].get(key) for d in docs])
+    out.update({key: {} for key, _, _, per_side, _ in FIGURES if per_side})
     steps = 0
-    for key, _, _, per_side, _ in FIGURES:
-        if not per_side:
-            continue
-        out[key] = {}
     for s in SIDES:
         pooled = {
             k: [x for d in docs for x in d["spatiotemporal"][s][k] if x is not None]

@@ -146,16 +146,27 @@ def test_an_unreadable_file_is_named_counted_and_the_rest_shown(
     broken = session_dir(tmp_path, "S01", "S01-2026-12-05")
     broken.mkdir(parents=True)
     (broken / "session.json").write_text(json.dumps({"format": "gaitflow.session-record"}))
+    odd = session_dir(tmp_path, "S01", "S01-2026-12-19")
+    odd.mkdir(parents=True)
+    record = {
+        "format": "gaitflow.session-record",
+        "version": 1,
+        "session": "x",
+        "analysed_at": "2026-12-19T10:00:00+00:00",
+        "trials": ["../../S02/walk-01"],
+    }
+    (odd / "session.json").write_text(json.dumps(record))
     sessions, errors = load_subject(tmp_path, "S01")
     assert [s.session for s in sessions] == ["S01-2026-11-21"]
     assert len(sessions[0].docs) == 1
-    assert len(errors) == 2
+    assert len(errors) == 3
     named = " ".join(str(e) for e in errors)
     assert "walk-02.json" in named and "S01-2026-12-05/session.json" in named
+    assert "not a list of trial names" in named  # nothing read from outside the session
 
     assert main(["progress", str(tmp_path), "S01"]) == 0
     out = capsys.readouterr()
-    assert "S01-2026-11-21" in out.out and "2 file(s) left out" in out.err
+    assert "S01-2026-11-21" in out.out and "3 file(s) left out" in out.err
     assert "walk-02.json" in out.err
     page = (tmp_path / "S01" / "progress.html").read_text()
     assert "left out" in page and "walk-02.json" in page
