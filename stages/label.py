@@ -1271,11 +1271,12 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # The blob on the near knee's fresh track is kept for the limb search: a crouched
         # knee sits as low as a tibia wand (the foot search comes first).
         u = (((fr.pos(kne_i) - fr.pred[kne_i]) / fr.sig[kne_i]) ** 2).sum(axis=1)
-        # Only the track's best blob: a tibia wand placed just below the knee (80 mm) also
-        # lies within 2 sigma of the knee's prediction, and with it kept out the tibia
+        # Only the track's best blob, and only when that one is low: a tibia wand placed
+        # just below the knee (80 mm) also lies within 2 sigma of the knee's prediction
+        # (a child's, 100 mm below and ahead of it, too), and with it kept out the tibia
         # label took the heel in swing.
-        u = np.where(low, u, np.inf)
-        if u.size and float(u.min()) < 4.0:
+        u = np.where(body, u, np.inf)
+        if u.size and float(u.min()) < 4.0 and low[int(np.argmin(u))]:
             low[int(np.argmin(u))] = False
     elif hip is not None:
         # Without a fresh knee track (a pass's first frames), a blob at the thigh's length

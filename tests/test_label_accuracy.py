@@ -129,6 +129,27 @@ def test_a_right_hip_label_is_kept_by_the_limb_search() -> None:
     assert fr.assign[MARKER_INDEX["R_KNE"]] == blob["KNE"]
 
 
+def test_a_tibia_wand_near_the_knee_track_stays_in_the_foot_search() -> None:
+    # A child's (or any short shank's) tibia wand lies within 2 sigma of the knee track's
+    # prediction. The knee's own blob, above the foot band, is the track's best blob: the
+    # tibia wand is not the knee's and stays a candidate of the foot search (it was kept
+    # out as the best *low* blob on the knee's track, and the tibia label took the heel).
+    fr, blob, geo, sho = _leg_frame()
+    H = geo.sho_h
+    k, t = blob["KNE"], blob["TIB"]
+    i = MARKER_INDEX["R_KNE"]
+    fr.pred[i] = fr.qm[k, 0]
+    fr.sig[i] = (66.0, 70.0, 50.0)
+    fr.tracked[i], fr.age[i] = True, 1
+    band = max(0.3 * H, geo.rel_sho("near", "TIB")[2] + 0.05 * H)
+    assert fr.qm[k, 0, 2] > band  # the knee is above the foot band
+    fr.qm[t] = fr.qm[k] + (-60.0, 10.0, -80.0)  # u = 3.4 < 4 from the knee's prediction
+    assert fr.qm[t, 0, 2] < band
+    label._lower(fr, geo, sho, H, 4.0)
+    assert fr.assign[MARKER_INDEX["R_TIB"]] == t
+    assert fr.assign[i] == k
+
+
 def test_a_crouched_knee_on_its_track_is_not_taken_for_the_tibia() -> None:
     fr, blob, geo, sho = _leg_frame()
     H = geo.sho_h

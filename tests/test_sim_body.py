@@ -18,9 +18,38 @@ from gaitflow.sim.body import (
     derive_markers,
     load_trial,
     pelvis_frame,
+    scale_trial,
     trials_dir,
 )
+from gaitflow.sim.config import SimConfig
 from gaitflow.sim.walk import _period
+
+
+def test_a_scaled_trial_is_a_smaller_subject_walking_the_same_gait() -> None:
+    src = load_trial("c3dorg_s00_vicon_CGM24")
+    child = scale_trial(src, 0.64)
+    assert scale_trial(src, 1.0) is src
+    for name in ("L_KNE", "R_HEE", "L_ASI"):
+        np.testing.assert_allclose(child.markers[name], 0.64 * src.markers[name])
+    np.testing.assert_allclose(child.t, 0.8 * src.t)  # Froude: times x sqrt(0.64)
+    assert child.rate_hz == pytest.approx(src.rate_hz / 0.8)
+    assert [(round(t / 0.8, 9), s, k) for t, s, k in child.events] == [
+        (round(t, 9), s, k) for t, s, k in src.events
+    ]
+
+    # joint angles unchanged (the ankle's, between shank and foot markers)
+    def ankle_angle(tr):
+        a, b = tr.markers["L_KNE"] - tr.markers["L_ANK"], tr.markers["L_TOE"] - tr.markers["L_ANK"]
+        cos = (a * b).sum(axis=1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+    np.testing.assert_allclose(ankle_angle(child), ankle_angle(src), atol=1e-9)
+    # the body built from it stands 0.64 as tall: shoulders' mean height
+    sho = MARKER_INDEX["L_SHO"]
+    h = [build_body(tr, 12.5).markers[:, sho, 2].mean() for tr in (src, child)]
+    assert h[1] == pytest.approx(0.64 * h[0], rel=0.02)
+    with pytest.raises(ConfigError, match="body_scale"):
+        SimConfig(body_scale=0.3)
 
 
 def test_harrington_hip_joint_centre() -> None:

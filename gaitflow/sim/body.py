@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -184,6 +184,24 @@ def load_trial(name: str, folder: Path | None = None) -> Trial:
     events.sort()
     meta = json.loads(str(d["metadata"])) if "metadata" in d.files else {}
     return Trial(name, t, markers, knee, events, rate, meta)
+
+
+def scale_trial(trial: Trial, k: float) -> Trial:
+    """The trial's subject at ``k`` times the size (a child for k < 1), walking the same
+    gait with dynamic similarity: lengths times k (about the floor point below the origin,
+    so the feet stay on the floor), times times sqrt(k) (equal Froude number: speed grows
+    with the square root of leg length), joint angles unchanged. ``k`` = 1 returns the trial.
+    """
+    if k == 1.0:
+        return trial
+    f = float(np.sqrt(k))
+    return replace(
+        trial,
+        t=trial.t * f,
+        markers={n: v * k for n, v in trial.markers.items()},
+        events=[(tt * f, side, kind) for tt, side, kind in trial.events],
+        rate_hz=trial.rate_hz / f,
+    )
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

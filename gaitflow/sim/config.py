@@ -72,6 +72,7 @@ class SimConfig:
     subject_id: str = "S01"
     arm_swing_gain: float = 0.7  # shoulder angle / contralateral thigh angle
     speed_factor: float = 1.0  # >1 plays the trial faster
+    body_scale: float = 1.0  # the subject's size (a child < 1; body.scale_trial)
     # Protocol durations.
     calibration_markers: int = 4
     calib_still_s: float = 1.2
@@ -93,6 +94,8 @@ class SimConfig:
             raise ConfigError(f"SimConfig.drop_prob={self.drop_prob} is outside [0, 0.5)")
         if self.supersample < 1 or self.blur_samples < 1:
             raise ConfigError("SimConfig.supersample and blur_samples must be >= 1")
+        if not 0.5 <= self.body_scale <= 1.3:
+            raise ConfigError(f"SimConfig.body_scale={self.body_scale} is outside 0.5..1.3")
         if self.speed_factor <= 0:
             raise ConfigError(f"SimConfig.speed_factor={self.speed_factor} must be positive")
         if self.wand_mount not in WAND_MOUNTS:

@@ -23,7 +23,7 @@ from gaitflow.camera import Camera
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 from gaitflow.schemas.raw import RawFrame
 from gaitflow.schemas.truth import GroundTruth
-from gaitflow.sim.body import build_body, knee_flexion, load_trial
+from gaitflow.sim.body import build_body, knee_flexion, load_trial, scale_trial
 from gaitflow.sim.config import SimConfig
 from gaitflow.sim.render import Renderer
 from gaitflow.sim.truth import merged_flags, spatiotemporal, visibility
@@ -258,7 +258,7 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
     config : simulator knobs; default :class:`SimConfig`.
     """
     cfg = config or SimConfig()
-    src = load_trial(trial)
+    src = scale_trial(load_trial(trial), cfg.body_scale)
     body = build_body(
         src,
         cfg.marker_radius_mm,

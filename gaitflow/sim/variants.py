@@ -70,6 +70,11 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         {"return_offset_mm": 300.0},
         "the walk back 0.3 m farther from the camera than the walk out (off the taped line)",
     ),
+    "child": (
+        {"body_scale": 0.72},
+        "a child of about 1.25 m: the trial's subject scaled to 0.72 of its size, walking"
+        " the same gait with dynamic similarity (times x 0.85), the same 25 mm markers",
+    ),
     "fps15": (
         {"camera": Camera(fps=15.0)},
         "15 frames/s (a sensor mode, or a tool that keeps every other frame)",
