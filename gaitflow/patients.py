@@ -290,10 +290,12 @@ def _signed(v: float, nd: int) -> str:
 def format_progress(subject: str, sessions: Sequence[SessionRecord]) -> str:
     """The progress table as text, for the terminal."""
     from gaitflow.benchutil import format_table
-    from gaitflow.report import _f
+    from gaitflow.report import fmt_value
 
     header, rows = progress_table(sessions)
-    lines = [[name, *(_f(v, nd) for v in vals), _signed(ch, nd)] for name, nd, vals, ch in rows]
+    lines = [
+        [name, *(fmt_value(v, nd) for v in vals), _signed(ch, nd)] for name, nd, vals, ch in rows
+    ]
     sessions_row = ["session", *(r.session for r in sessions), ""]
     return format_table(f"gaitflow progress: subject {subject}", header, [sessions_row, *lines])
 
@@ -304,7 +306,7 @@ def _chart(key: str, label: str, unit: str, per_side: bool, figs: list[dict], x:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gaitflow.report import COLOURS, SIDE_NAME, _svg
+    from gaitflow.report import COLOURS, SIDE_NAME, svg_of
 
     fig, ax = plt.subplots(figsize=(3.4, 2.5))
     idx = np.arange(len(x))
@@ -318,7 +320,7 @@ def _chart(key: str, label: str, unit: str, per_side: bool, figs: list[dict], x:
     if per_side:
         ax.legend(fontsize=8, frameon=False)
     fig.tight_layout()
-    out = _svg(fig)
+    out = svg_of(fig)
     plt.close(fig)
     return out
 
@@ -334,7 +336,7 @@ def render_progress_html(
 ) -> str:
     """The progress page as one HTML string (no external resource); trial reports are linked
     relative to ``base``, the folder the page is written to."""
-    from gaitflow.report import CSS, _f
+    from gaitflow.report import CSS, fmt_value
 
     esc = html.escape
     figs = [session_figures(r.docs) for r in sessions]
@@ -353,7 +355,7 @@ def render_progress_html(
     parts.append("<h2>Figures per visit</h2><table><tr>")
     parts.append("".join(f"<th>{esc(h)}</th>" for h in header) + "</tr>")
     for name, nd, vals, change in rows:
-        cells = [esc(name), *(_f(v, nd) for v in vals), _signed(change, nd)]
+        cells = [esc(name), *(fmt_value(v, nd) for v in vals), _signed(change, nd)]
         parts.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     links = [
         " ".join(f"<a href='{esc(_href(p, base))}'>{esc(p.stem)}</a>" for p in rec.reports)

@@ -215,7 +215,8 @@ def symmetry_index(left: float, right: float) -> float:
     return 100.0 * (left - right) / (0.5 * (left + right))
 
 
-def _svg(fig: Any) -> str:
+def svg_of(fig: Any) -> str:
+    """A matplotlib figure as inline SVG markup (from ``<svg``, no XML prologue)."""
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight")
     text = buf.getvalue()
@@ -256,7 +257,7 @@ def cycle_figure(doc: Mapping[str, Any], norm: Mapping[str, Any]) -> str:
             ax.text(50, 30, "no complete cycle with the knee seen", ha="center", color="0.4")
     axes[0].set_ylabel("knee flexion, deg")
     fig.tight_layout()
-    out = _svg(fig)
+    out = svg_of(fig)
     plt.close(fig)
     return out
 
@@ -291,7 +292,7 @@ def time_figure(doc: Mapping[str, Any]) -> str:
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8, ncol=4, frameon=False)
     fig.tight_layout()
-    out = _svg(fig)
+    out = svg_of(fig)
     plt.close(fig)
     return out
 
@@ -300,7 +301,8 @@ def time_figure(doc: Mapping[str, Any]) -> str:
 # HTML
 
 
-def _f(v: float, nd: int = 1, sd: float | None = None) -> str:
+def fmt_value(v: float, nd: int = 1, sd: float | None = None) -> str:
+    """``v`` with ``nd`` decimals (and ``± sd`` when given), "–" when unknown."""
     if v is None or not math.isfinite(v):
         return "–"
     if sd is not None and math.isfinite(sd) and sd > 0:
@@ -386,7 +388,7 @@ def render_html(doc: Mapping[str, Any], norm: Mapping[str, Any] | None = None) -
     body = "".join(
         f"<tr><td>{label}</td>"
         + "".join(
-            f"<td class='{s}'>{_f(summ[s][key], nd, summ[s][sd] if sd else None)}</td>"
+            f"<td class='{s}'>{fmt_value(summ[s][key], nd, summ[s][sd] if sd else None)}</td>"
             for s in SIDES
         )
         + "</tr>"
@@ -406,8 +408,9 @@ def render_html(doc: Mapping[str, Any], norm: Mapping[str, Any] | None = None) -
             )
     parts.append(
         f"<table><tr><th>both sides</th><th>value</th></tr>"
-        f"<tr><td>cadence, steps/min</td><td>{_f(st.get('cadence_steps_per_min'), 1)}</td></tr>"
-        f"<tr><td>walking speed, m/s</td><td>{_f(st.get('speed_m_s'), 2)}</td></tr></table>"
+        f"<tr><td>cadence, steps/min</td>"
+        f"<td>{fmt_value(st.get('cadence_steps_per_min'), 1)}</td></tr>"
+        f"<tr><td>walking speed, m/s</td><td>{fmt_value(st.get('speed_m_s'), 2)}</td></tr></table>"
     )
     parts.append("<h2>Left/right symmetry</h2>")
     sym_rows = [
@@ -418,8 +421,9 @@ def render_html(doc: Mapping[str, Any], norm: Mapping[str, Any] | None = None) -
         ("knee ROM", "knee_rom_deg"),
     ]
     body = "".join(
-        f"<tr><td>{label}</td><td>{_f(symmetry_index(summ['L'][k], summ['R'][k]), 1)}</td>"
-        f"<td>{_f(summ['L'][k] / summ['R'][k] if summ['R'][k] else float('nan'), 3)}</td></tr>"
+        f"<tr><td>{label}</td><td>{fmt_value(symmetry_index(summ['L'][k], summ['R'][k]), 1)}</td>"
+        f"<td>{fmt_value(summ['L'][k] / summ['R'][k] if summ['R'][k] else float('nan'), 3)}"
+        "</td></tr>"
         for label, k in sym_rows
     )
     parts.append(
@@ -442,7 +446,7 @@ def render_html(doc: Mapping[str, Any], norm: Mapping[str, Any] | None = None) -
                 names = [*PHASE_NAMES[1:], "end"]
                 for p, nxt in zip(PHASE_NAMES, names, strict=True):
                     starts[p].append(100.0 * (c[nxt] - c[p]) / dur)
-            cells = "".join(f"<td>{_f(float(np.mean(v)), 1)}</td>" for v in starts.values())
+            cells = "".join(f"<td>{fmt_value(float(np.mean(v)), 1)}</td>" for v in starts.values())
             body += f"<tr><td class='{s}'>{SIDE_NAME[s]} ({len(cyc)})</td>{cells}</tr>"
         parts.append(
             f"<table><tr><th>side (cycles)</th>{head}</tr>{body}</table><p class='small'>Initial "
