@@ -30,6 +30,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -127,6 +128,11 @@ class SessionRecord:
     folder: Path
     docs: list[dict[str, Any]] = field(default_factory=list)
     reports: list[Path] = field(default_factory=list)
+
+    @cached_property
+    def figures(self) -> dict[str, Any]:
+        """The session's figures (:func:`session_figures`), computed once for every view."""
+        return session_figures(self.docs)
 
 
 def _read_manifest(p: Path) -> dict[str, Any]:
@@ -230,6 +236,15 @@ def session_figures(docs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _figure_sides() -> list[tuple[str, str | None, str, int]]:
+    """:data:`FIGURES` one column each: (key, side or None, label with unit, decimals)."""
+    return [
+        (key, s, f"{label}{' ' + s if s else ''}, {unit}", nd)
+        for key, label, unit, per_side, nd in FIGURES
+        for s in (("L", "R") if per_side else (None,))
+    ]
+
+
 def _value(fig: Mapping[str, Any], key: str, side: str | None) -> float:
     v = fig[key][side] if side else fig[key]
     return float(v) if v is not None else float("nan")
@@ -242,17 +257,15 @@ def progress_table(
     per figure: (label with unit, decimals, value per visit, change from the first visit to
     the last, NaN where either is unknown). The first rows count trials and steps; the last
     is the step-length symmetry index."""
-    figs = [session_figures(r.docs) for r in sessions]
+    figs = [r.figures for r in sessions]
     header = ["figure", *(r.date or r.session for r in sessions), "change"]
     rows: list[tuple[str, int, list[float], float]] = [
         ("walking trials", 0, [float(f["trials"]) for f in figs], float("nan")),
         ("steps measured", 0, [float(f["steps"]) for f in figs], float("nan")),
     ]
-    for key, label, unit, per_side, nd in FIGURES:
-        for s in ("L", "R") if per_side else (None,):
-            vals = [_value(f, key, s) for f in figs]
-            name = f"{label}{' ' + s if s else ''}, {unit}"
-            rows.append((name, nd, vals, vals[-1] - vals[0] if vals else float("nan")))
+    for key, s, name, nd in _figure_sides():
+        vals = [_value(f, key, s) for f in figs]
+        rows.append((name, nd, vals, vals[-1] - vals[0] if vals else float("nan")))
     sym = [float(f["step_symmetry_pct"]) for f in figs]
     rows.append(("step symmetry (L vs R), %", 1, sym, float("nan")))
     return header, rows
@@ -261,18 +274,15 @@ def progress_table(
 def write_progress_csv(sessions: Sequence[SessionRecord], path: str | Path) -> Path:
     """The progress table for a spreadsheet: one row per visit (date, session, then one
     column per figure, the per-side ones as ``<key>_L`` / ``<key>_R``); empty = unknown."""
-    figs = [session_figures(r.docs) for r in sessions]
-    keys: list[tuple[str, str | None]] = [("trials", None), ("steps", None)]
-    for key, _, _, per_side, _ in FIGURES:
-        keys += [(key, s) for s in (("L", "R") if per_side else (None,))]
+    keys = [("trials", None), ("steps", None), *((k, s) for k, s, _, _ in _figure_sides())]
     keys.append(("step_symmetry_pct", None))
     header = ["date", "session", *(f"{k}_{s}" if s else k for k, s in keys)]
     p = Path(path)
     with p.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header)
-        for rec, fig in zip(sessions, figs, strict=True):
-            vals = [_value(fig, k, s) for k, s in keys]
+        for rec in sessions:
+            vals = [_value(rec.figures, k, s) for k, s in keys]
             w.writerow(
                 [
                     rec.date or "",
@@ -339,7 +349,7 @@ def render_progress_html(
     from gaitflow.report import CSS, fmt_value
 
     esc = html.escape
-    figs = [session_figures(r.docs) for r in sessions]
+    figs = [r.figures for r in sessions]
     x = [r.date or r.session for r in sessions]
     parts = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",

@@ -1276,8 +1276,9 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # (a child's, 100 mm below and ahead of it, too), and with it kept out the tibia
         # label took the heel in swing.
         u = np.where(body, u, np.inf)
-        if u.size and float(u.min()) < 4.0 and low[int(np.argmin(u))]:
-            low[int(np.argmin(u))] = False
+        best = int(np.argmin(u)) if u.size else -1
+        if best >= 0 and u[best] < 4.0:
+            low[best] = False
     elif hip is not None:
         # Without a fresh knee track (a pass's first frames), a blob at the thigh's length
         # from the labelled hip (within half a sigma of _rigid) is kept for the limb search
