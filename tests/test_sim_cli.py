@@ -57,3 +57,23 @@ def test_simulate_writes_session_folder_read_back_identical(tmp_path) -> None:
         assert ir.tobytes() == raw.ir.tobytes()
         assert depth.tobytes() == raw.depth.tobytes()
         np.testing.assert_array_equal(truth["visible"][k], gt.visible)
+
+
+def test_simulate_writes_a_named_variant_of_the_benches(tmp_path) -> None:
+    """``--variant`` is the set-up of ``bench gait --variant``: here another sensor."""
+    out = tmp_path / "K01"
+    args = ["c3dorg_s00_vicon_CGM24", "--out", str(out), "--quick", "--max-frames", "2"]
+    assert main(["simulate", *args, "--variant", "k4a"]) == 0
+    cam = json.loads((out / "camera.json").read_text())
+    assert (cam["width"], cam["height"], cam["model"]) == (640, 576, "azure-kinect-nfov")
+    _, _, ir, depth = next(iter(SessionReader(out).frames("walk-01")))
+    assert ir.shape == depth.shape == (576, 640)
+
+
+def test_simulate_refuses_an_unknown_variant(tmp_path, capsys) -> None:
+    out = tmp_path / "X"
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "c3dorg_s00_vicon_CGM24", "--out", str(out), "--variant", "moon"])
+    assert e.value.code == 2
+    assert "moon" in capsys.readouterr().err
+    assert not out.exists()

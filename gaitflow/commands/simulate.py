@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from gaitflow.errors import InputError
+from gaitflow.sim.variants import VARIANTS
 
 PREVIEW_PATH = Path("docs/img/sim-preview.png")
 
@@ -159,12 +160,13 @@ def _preview_picks(name: str, rec: Any, max_frames: int | None) -> set[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gaitflow.sim.config import SimConfig
-    from gaitflow.sim.session import simulate_session
+    import dataclasses
 
-    cfg = SimConfig(n_walks=args.walks)
-    if args.quick:
-        cfg = SimConfig.quick(n_walks=args.walks)
+    from gaitflow.sim.session import simulate_session
+    from gaitflow.sim.variants import sim_config
+
+    # the benches' named set-ups (camera, distance, markers, subject), as session folders
+    cfg = dataclasses.replace(sim_config(args.variant, quick=args.quick), n_walks=args.walks)
     ses = simulate_session(args.trial, seed=args.seed, config=cfg)
     preview = None
     if args.preview:
@@ -182,7 +184,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Render a calibration sequence, a static pose and walking trials from a "
         "real motion-capture trial, and write them as a session folder "
         "(camera.json, calibration/, static/, walk-NN/) with ground truth in truth/.",
-        epilog="Example: gaitflow simulate btk_PiG_Motion-FlatFoot-Full --out out/S01 --preview",
+        epilog="Example: gaitflow simulate btk_PiG_Motion-FlatFoot-Full --out out/S01 --preview\n"
+        "         gaitflow simulate btk_PiG_Motion3_FF --out out/C01 --variant child",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("trial", help="bundled trial id (see: gaitflow simulate --list)")
@@ -190,6 +193,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--walks", type=int, default=1, help="number of walking trials")
     p.add_argument("--quick", action="store_true", help="short calibration and static parts")
+    p.add_argument(
+        "--variant",
+        default="base",
+        choices=list(VARIANTS),
+        help="a named set-up of `gaitflow bench gait --variant` (default base): "
+        + "; ".join(f"{k}: {v[1]}" for k, v in VARIANTS.items() if k != "base"),
+    )
     p.add_argument(
         "--max-frames", type=int, default=None, help="keep only the first N frames of each"
     )
