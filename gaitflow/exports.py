@@ -1,0 +1,164 @@
+"""Trial results in the formats of researchers' tools: C3D and OpenSim's TRC.
+
+A results document (``../shared/spec/results.md``) holds the labelled markers per camera
+frame and the gait events. :func:`trial_arrays` turns it into arrays on the camera's frame
+grid (a frame the sensor dropped is a row of NaN, so row k is always k frame intervals
+after the first); :func:`c3d_bytes` and :func:`trc_text` write those.
+
+Conventions: axis 0 is time (camera frames), axis 1 follows
+:data:`gaitflow.markers.MARKER_NAMES`, axis 2 is (X, Y, Z) in the camera space of the
+results (mm; X right, Y down, Z forward). NaN means not seen; the C3D writes it as an
+invalid point (residual -1), the TRC as an empty field. The positions are those the
+pipeline measured, never gap-filled.
+
+- C3D (read by Vicon Nexus, Visual3D, Mokka, ezc3d, btk, kineticstoolkit): the 20 markers
+  as 3D points (``POINT:LABELS`` = the marker names, ``POINT:UNITS`` mm, the screen axes set
+  so that a viewer shows Y down as down), the heel strikes and toe offs as events
+  (``EVENT:CONTEXTS`` Left/Right, ``EVENT:LABELS`` "Foot Strike"/"Foot Off", the Vicon
+  convention, ``EVENT:TIMES`` minutes and seconds from the first frame) and the session and
+  trial names (``SUBJECTS``, ``TRIAL``).
+- TRC (OpenSim's marker file, tab-separated text): the same markers and frame grid, with
+  the frame number and time from the first frame.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gaitflow.errors import InputError
+from gaitflow.markers import MARKER_NAMES
+
+EVENT_LABEL = {"heel_strike": "Foot Strike", "toe_off": "Foot Off"}
+EVENT_CONTEXT = {"L": "Left", "R": "Right"}
+
+
+@dataclass(frozen=True)
+class TrialArrays:
+    """One trial's labelled markers and events on the camera's frame grid.
+
+    frame : (F,) camera frame index of each row (consecutive, from the first frame seen).
+    time_s : (F,) s from the first row (frame k is k / rate).
+    xyz : (F, 20, 3) mm, camera space; NaN where not seen (or the frame was dropped).
+    events : ((side, kind, time_s), ...) with time_s from the first row.
+    """
+
+    session: str
+    trial: str
+    rate: float
+    frame: np.ndarray
+    time_s: np.ndarray
+    xyz: np.ndarray
+    events: tuple[tuple[str, str, float], ...]
+
+
+def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArrays:
+    """The markers and events of a results document (validated by the caller).
+
+    Raises :class:`InputError` naming ``source`` if the trial has no frame or its frame
+    indices are not increasing.
+    """
+    frames = doc["frames"]
+    rate = float(doc["camera_fps"])
+    if not frames:
+        raise InputError(source, "the trial has no frame to export")
+    index = np.array([int(f["index"]) for f in frames])
+    if np.any(np.diff(index) <= 0):
+        raise InputError(source, "frame indices are not increasing")
+    first = int(index[0])
+    n = int(index[-1]) - first + 1
+    xyz = np.full((n, len(MARKER_NAMES), 3), np.nan)
+    for f, k in zip(frames, index - first, strict=True):
+        for j, name in enumerate(MARKER_NAMES):
+            p = f["markers"].get(name)
+            if p is not None:
+                xyz[k, j] = p
+    t0 = float(frames[0]["time_s"])
+    events = tuple(
+        (str(e["side"]), str(e["kind"]), float(e["time_s"]) - t0)
+        for e in doc.get("events", [])
+        if e.get("kind") in EVENT_LABEL and e.get("side") in EVENT_CONTEXT
+    )
+    return TrialArrays(
+        session=str(doc.get("session", "")),
+        trial=str(doc.get("trial", "")),
+        rate=rate,
+        frame=np.arange(first, first + n),
+        time_s=np.arange(n) / rate,
+        xyz=xyz,
+        events=events,
+    )
+
+
+def c3d_bytes(arr: TrialArrays) -> bytes:
+    """The trial as a C3D file (floating-point points, no analog channels)."""
+    import c3d
+
+    w = c3d.Writer(point_rate=arr.rate, point_units="mm  ")
+    w.set_point_labels(list(MARKER_NAMES))
+    # camera space: X to the right of the image, Y down it
+    w.set_screen_axis(X="+X", Y="-Y")
+    pts = np.zeros((len(arr.xyz), len(MARKER_NAMES), 5), np.float32)
+    seen = np.isfinite(arr.xyz).all(axis=2)
+    pts[..., :3] = np.where(seen[..., None], arr.xyz, 0.0)
+    pts[..., 3] = np.where(seen, 0.0, -1.0)  # residual -1: an invalid point
+    empty = np.zeros((0, 0), np.float32)
+    w.add_frames([(p, empty) for p in pts])
+    if arr.events:
+        g = w.get_create("EVENT")
+        g.add("USED", "Number of events", 2, "<H", len(arr.events))
+        contexts = [EVENT_CONTEXT[s] for s, _, _ in arr.events]
+        labels = [EVENT_LABEL[k] for _, k, _ in arr.events]
+        for key, what, values in (("CONTEXTS", "Event contexts", contexts),
+                                  ("LABELS", "Event labels", labels)):  # fmt: skip
+            text, width = c3d.Writer.pack_labels(values)
+            g.add_str(key, what, text, width, len(values))
+        t = np.array([e[2] for e in arr.events])
+        minutes = np.floor(t / 60.0)
+        times = np.stack([minutes, t - 60.0 * minutes], axis=1).astype("<f4")  # (N, 2)
+        # C3D dimensions are column-major: (2, N) holds each event's minutes and seconds
+        # together, which is the byte order of the (N, 2) array
+        g.add_param(
+            "TIMES",
+            desc="Event times (minutes, seconds)",
+            bytes_per_element=4,
+            bytes=times.tobytes(),
+            dimensions=[2, len(times)],
+        )
+    for key, what, value in (("SUBJECTS", "Session", arr.session), ("TRIAL", "Trial", arr.trial)):
+        if value:
+            text, width = c3d.Writer.pack_labels([value])
+            w.get_create(key).add_str("NAMES", what, text, width, 1)
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        # the library's note that the file has no analog channels: by design here
+        warnings.filterwarnings("ignore", message="No analog data found", category=UserWarning)
+        w.write(buf)
+    return buf.getvalue()
+
+
+def trc_text(arr: TrialArrays, file_name: str) -> str:
+    """The trial as an OpenSim TRC marker file (tab-separated; empty = not seen)."""
+    n, m = len(arr.xyz), len(MARKER_NAMES)
+    rate = f"{arr.rate:.2f}"
+    head = [
+        f"PathFileType\t4\t(X/Y/Z)\t{file_name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
+        "OrigDataStartFrame\tOrigNumFrames",
+        f"{rate}\t{rate}\t{n}\t{m}\tmm\t{rate}\t1\t{n}",
+        "Frame#\tTime\t" + "\t\t\t".join(MARKER_NAMES),
+        "\t\t" + "\t".join(f"{a}{j + 1}" for j in range(m) for a in "XYZ"),
+    ]
+    cells = np.where(np.isfinite(arr.xyz), np.char.mod("%.3f", np.nan_to_num(arr.xyz)), "").reshape(
+        n, 3 * m
+    )
+    rows = [
+        f"{k + 1}\t{t:.5f}\t" + "\t".join(row)
+        for k, (t, row) in enumerate(zip(arr.time_s, cells, strict=True))
+    ]
+    return "\n".join([*head, "", *rows]) + "\n"

@@ -1,0 +1,116 @@
+"""Trial results as C3D and OpenSim TRC (``gaitflow.exports``, ``gaitflow convert``)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import c3d
+import numpy as np
+import pytest
+
+from gaitflow.cli import main
+from gaitflow.errors import InputError
+from gaitflow.exports import c3d_bytes, trc_text, trial_arrays
+from gaitflow.markers import MARKER_INDEX
+from gaitflow.results import build_results, write_results
+
+KNE = MARKER_INDEX["R_KNE"]
+HEE = MARKER_INDEX["L_HEE"]
+
+
+def _doc() -> dict:
+    """Frames 10, 11 and 13 of a 30 fps trial (12 was dropped); the right knee seen in
+    all three, the left heel only in 11; a heel strike and a toe off."""
+    pos = np.full((3, 20, 3), np.nan)
+    pos[:, KNE] = [[100.0, 200.0, 2500.0], [110.0, 201.0, 2501.5], [130.0, 203.0, 2503.0]]
+    pos[1, HEE] = [-50.0, 700.0, 2800.0]
+    pix = np.where(np.isfinite(pos[..., :2]), 100.0, np.nan)
+    return build_results(
+        session="S01-2026-11-27",
+        trial="walk-01",
+        camera_fps=30.0,
+        frame_index=[10, 11, 13],
+        frame_time_s=np.array([0.0, 1 / 30, 3 / 30]),
+        positions=pos,
+        pixels=pix,
+        knee_time_s=np.zeros(0),
+        knee_deg={"L": np.zeros(0), "R": np.zeros(0)},
+        events=[
+            {"side": "L", "kind": "heel_strike", "time_s": 0.05},
+            {"side": "R", "kind": "toe_off", "time_s": 0.1},
+        ],
+        spatiotemporal={},
+    )
+
+
+def test_trial_arrays_put_a_dropped_frame_on_the_grid_as_missing() -> None:
+    arr = trial_arrays(_doc())
+    assert arr.frame.tolist() == [10, 11, 12, 13]
+    np.testing.assert_allclose(arr.time_s, [0.0, 1 / 30, 2 / 30, 3 / 30])
+    assert np.isnan(arr.xyz[2]).all()  # the dropped frame
+    np.testing.assert_array_equal(arr.xyz[3, KNE], [130.0, 203.0, 2503.0])
+    assert np.isnan(arr.xyz[0, HEE]).all() and arr.xyz[1, HEE, 1] == 700.0
+    assert arr.events == (("L", "heel_strike", 0.05), ("R", "toe_off", 0.1))
+
+
+def test_a_trial_without_frames_cannot_be_exported() -> None:
+    doc = _doc()
+    doc["frames"] = []
+    with pytest.raises(InputError, match="no frame"):
+        trial_arrays(doc, "walk-09.json")
+
+
+def test_the_c3d_reads_back_with_markers_invalid_points_and_events() -> None:
+    import io
+
+    with warnings.catch_warnings():
+        # the reader's note that the file has no analog channels (none are written)
+        warnings.filterwarnings("ignore", message="No analog data found", category=UserWarning)
+        r = c3d.Reader(io.BytesIO(c3d_bytes(trial_arrays(_doc()))))
+        pts = np.array([p for _, p, _ in r.read_frames()])
+    assert r.point_rate == 30.0 and r.frame_count == 4
+    assert [s.strip() for s in r.point_labels][KNE] == "R_KNE"
+    assert pts.shape == (4, 20, 5)
+    np.testing.assert_allclose(pts[3, KNE, :3], [130.0, 203.0, 2503.0])
+    assert pts[3, KNE, 3] >= 0  # a valid point
+    assert (pts[2, :, 3] == -1).all()  # the dropped frame: every point invalid
+    assert pts[0, HEE, 3] == -1 and pts[1, HEE, 3] >= 0
+    ev = r.get("EVENT")
+    assert [s.strip() for s in ev.get("CONTEXTS").string_array] == ["Left", "Right"]
+    assert [s.strip() for s in ev.get("LABELS").string_array] == ["Foot Strike", "Foot Off"]
+    # (minutes, seconds) per event
+    np.testing.assert_allclose(ev.get("TIMES").float_array, [[0.0, 0.05], [0.0, 0.1]])
+    assert r.get("TRIAL").get("NAMES").string_array[0].strip() == "walk-01"
+
+
+def test_the_trc_has_opensims_header_and_empty_fields_where_unseen() -> None:
+    text = trc_text(trial_arrays(_doc()), "walk-01.trc")
+    lines = text.split("\n")
+    assert lines[0].split("\t")[:3] == ["PathFileType", "4", "(X/Y/Z)"]
+    assert lines[2].split("\t")[:5] == ["30.00", "30.00", "4", "20", "mm"]
+    assert lines[3].split("\t")[2 + 3 * KNE] == "R_KNE"
+    rows = [ln.split("\t") for ln in lines[6:] if ln]
+    assert len(rows) == 4 and all(len(r) == 2 + 60 for r in rows)
+    assert rows[3][:2] == ["4", "0.10000"]
+    assert rows[3][2 + 3 * KNE : 5 + 3 * KNE] == ["130.000", "203.000", "2503.000"]
+    assert rows[2][2:] == [""] * 60  # the dropped frame
+    assert rows[0][2 + 3 * HEE] == "" and rows[1][2 + 3 * HEE] == "-50.000"
+
+
+def test_convert_writes_both_and_names_a_bad_file_without_stopping(tmp_path, capsys) -> None:
+    good = write_results(_doc(), tmp_path / "walk-01.json")
+    bad = tmp_path / "walk-02.json"
+    bad.write_text(json.dumps({"format": "something else"}))
+    out = tmp_path / "exports"
+    assert main(["convert", str(bad), str(good), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "walk-02.json" in err and "1 file(s) skipped" in err
+    assert sorted(p.name for p in out.iterdir()) == ["walk-01.c3d", "walk-01.trc"]
+    assert (out / "walk-01.trc").read_text() == trc_text(trial_arrays(_doc()), "walk-01.trc")
+
+
+def test_convert_refuses_an_unknown_format(tmp_path, capsys) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["convert", str(tmp_path / "walk-01.json"), "--to", "c3d,xlsx"])
+    assert e.value.code == 2 and "xlsx" in capsys.readouterr().err
