@@ -6,10 +6,16 @@ grid (a frame the sensor dropped is a row of NaN, so row k is always k frame int
 after the first); :func:`c3d_bytes` and :func:`trc_text` write those.
 
 Conventions: axis 0 is time (camera frames), axis 1 follows
-:data:`gaitflow.markers.MARKER_NAMES`, axis 2 is (X, Y, Z) in the camera space of the
-results (mm; X right, Y down, Z forward). NaN means not seen; the C3D writes it as an
-invalid point (residual -1), the TRC as an empty field. The positions are those the
-pipeline measured, never gap-filled.
+:data:`gaitflow.markers.MARKER_NAMES`, axis 2 is (X, Y, Z) in mm. NaN means not seen; the
+C3D writes it as an invalid point (residual -1), the TRC as an empty field. The positions
+are those the pipeline measured, never gap-filled. Two frames (``frame``):
+
+- ``lab`` (the default where the results carry the calibration's ``walkway``): origin at
+  the walking line's start on the floor, X along the walkway (start to end), Z up (the
+  floor normal) and Y = Z x X (away from the camera) in the C3D, the ISB / Vicon lab
+  convention; X along the walkway, Y up and Z toward the camera in the TRC, OpenSim's.
+  Both right-handed; the frame stays put when the subject walks back.
+- ``camera``: the results' camera space (X right, Y down, Z forward).
 
 - C3D (read by Vicon Nexus, Visual3D, Mokka, ezc3d, btk, kineticstoolkit): the 20 markers
   as 3D points (``POINT:LABELS`` = the marker names, ``POINT:UNITS`` mm, the screen axes set
@@ -46,6 +52,9 @@ class TrialArrays:
     time_s : (F,) s from the first row (frame k is k / rate).
     xyz : (F, 20, 3) mm, camera space; NaN where not seen (or the frame was dropped).
     events : ((side, kind, time_s), ...) with time_s from the first row.
+    floor : (3, 3) rows: walkway axis, away from the camera, floor normal up (camera
+        space), and origin (3,) the walking line's start on the floor; None without a
+        walkway.
     """
 
     session: str
@@ -55,6 +64,23 @@ class TrialArrays:
     time_s: np.ndarray
     xyz: np.ndarray
     events: tuple[tuple[str, str, float], ...]
+    floor: np.ndarray | None = None
+    origin: np.ndarray | None = None
+
+    def positions(self, frame: str, y_up: bool) -> np.ndarray:
+        """(F, 20, 3) mm in ``frame`` ("lab" or "camera"); ``y_up``: OpenSim's lab axes
+        (X walkway, Y up, Z toward the camera) instead of Z up."""
+        if frame == "camera":
+            return self.xyz
+        if frame != "lab":
+            raise InputError(frame, "unknown frame: use lab or camera")
+        if self.floor is None or self.origin is None:
+            raise InputError(
+                self.trial, "the results carry no walkway (calibration): use frame camera"
+            )
+        e1, e2, up = self.floor
+        rows = np.stack([e1, up, -e2]) if y_up else self.floor
+        return (self.xyz - self.origin) @ rows.T
 
 
 def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArrays:
@@ -78,6 +104,16 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
             p = f["markers"].get(name)
             if p is not None:
                 xyz[k, j] = p
+    floor = origin = None
+    walk = doc.get("walkway")
+    if walk is not None:
+        from gaitflow.stages.calibrate import floor_frame
+
+        plane, start, end = (np.asarray(walk[k], float) for k in ("floor_plane", "start", "end"))
+        floor = floor_frame(plane, start, end)
+        # the walking line's start, dropped onto the floor
+        norm = np.linalg.norm(plane[:3])
+        origin = start - (start @ plane[:3] + plane[3]) / norm * (plane[:3] / norm)
     t0 = float(frames[0]["time_s"])
     events = tuple(
         (str(e["side"]), str(e["kind"]), float(e["time_s"]) - t0)
@@ -92,20 +128,24 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
         time_s=np.arange(n) / rate,
         xyz=xyz,
         events=events,
+        floor=floor,
+        origin=origin,
     )
 
 
-def c3d_bytes(arr: TrialArrays) -> bytes:
+def c3d_bytes(arr: TrialArrays, frame: str = "lab") -> bytes:
     """The trial as a C3D file (floating-point points, no analog channels)."""
     import c3d
 
+    xyz = arr.positions(frame, y_up=False)
     w = c3d.Writer(point_rate=arr.rate, point_units="mm  ")
     w.set_point_labels(list(MARKER_NAMES))
-    # camera space: X to the right of the image, Y down it
-    w.set_screen_axis(X="+X", Y="-Y")
-    pts = np.zeros((len(arr.xyz), len(MARKER_NAMES), 5), np.float32)
-    seen = np.isfinite(arr.xyz).all(axis=2)
-    pts[..., :3] = np.where(seen[..., None], arr.xyz, 0.0)
+    # what a viewer shows to the right and up: the walkway and the vertical, or the image
+    # axes (Y points down it)
+    w.set_screen_axis(*(("+X", "+Z") if frame == "lab" else ("+X", "-Y")))
+    pts = np.zeros((len(xyz), len(MARKER_NAMES), 5), np.float32)
+    seen = np.isfinite(xyz).all(axis=2)
+    pts[..., :3] = np.where(seen[..., None], xyz, 0.0)
     pts[..., 3] = np.where(seen, 0.0, -1.0)  # residual -1: an invalid point
     empty = np.zeros((0, 0), np.float32)
     w.add_frames([(p, empty) for p in pts])
@@ -142,9 +182,10 @@ def c3d_bytes(arr: TrialArrays) -> bytes:
     return buf.getvalue()
 
 
-def trc_text(arr: TrialArrays, file_name: str) -> str:
+def trc_text(arr: TrialArrays, file_name: str, frame: str = "lab") -> str:
     """The trial as an OpenSim TRC marker file (tab-separated; empty = not seen)."""
-    n, m = len(arr.xyz), len(MARKER_NAMES)
+    xyz = arr.positions(frame, y_up=True)
+    n, m = len(xyz), len(MARKER_NAMES)
     rate = f"{arr.rate:.2f}"
     head = [
         f"PathFileType\t4\t(X/Y/Z)\t{file_name}",
@@ -154,7 +195,7 @@ def trc_text(arr: TrialArrays, file_name: str) -> str:
         "Frame#\tTime\t" + "\t\t\t".join(MARKER_NAMES),
         "\t\t" + "\t".join(f"{a}{j + 1}" for j in range(m) for a in "XYZ"),
     ]
-    cells = np.where(np.isfinite(arr.xyz), np.char.mod("%.3f", np.nan_to_num(arr.xyz)), "").reshape(
+    cells = np.where(np.isfinite(xyz), np.char.mod("%.3f", np.nan_to_num(xyz)), "").reshape(
         n, 3 * m
     )
     rows = [

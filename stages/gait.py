@@ -616,17 +616,27 @@ def analyse(
     )
 
 
+def _walkway(state: GaitState) -> dict[str, list[float]] | None:
+    """The calibration's floor plane and walking line (camera mm), for the results'
+    ``walkway`` (exports place the markers in the lab frame with it); None without them."""
+    parts = {"floor_plane": state.plane, "start": state.start, "end": state.end}
+    if any(v is None or not np.all(np.isfinite(v)) for v in parts.values()):
+        return None
+    return {k: [round(float(x), 6) for x in v] for k, v in parts.items()}
+
+
 def _document(
     frames: Sequence[FrameRec],
     a: TrialAnalysis,
     params: Mapping[str, Any],
     pass_index: int | None = None,
     records: Sequence[Mapping[str, Any]] | None = None,
+    walkway: Mapping[str, list[float]] | None = None,
 ) -> dict[str, Any]:
     """The results document of the whole trial, or of one pass of it.
 
     ``records``: the trial's frame records (``frame_records``), when several documents of
-    the trial are made at once.
+    the trial are made at once. ``walkway``: see :func:`_walkway` (left out when None).
     """
     trial = frames[0].header.trial
     sel = np.ones(len(a.t), dtype=bool)
@@ -671,6 +681,7 @@ def _document(
             "event_uncertainty_s": round(0.5 / a.fps, 4) if a.fps > 0 else 0.0,
             "warnings": warnings,
             "parameters": {k: v for k, v in params.items() if k != "session"},
+            **({"walkway": dict(walkway)} if walkway is not None else {}),
         },
         records=None if records is None else [records[i] for i in keep],
     )
@@ -787,11 +798,11 @@ def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
         return _reset(state), out, []
     a = _analyse_trial(state)
     records = _frame_records(state.frames, a)
-    doc = _document(state.frames, a, state.params, records=records)
+    doc = _document(state.frames, a, state.params, records=records, walkway=_walkway(state))
     new_events = _new_events(state, a.events, float("inf"))
     for i, ps in enumerate(a.passes):
         if ps["end_s"] > state.summarised_until:
-            pdoc = _document(state.frames, a, state.params, i, records)
+            pdoc = _document(state.frames, a, state.params, i, records, _walkway(state))
             out.append(TrialSummary.follow(last, results=pdoc, warnings=pdoc["warnings"]))
     out.append(TrialSummary.follow(last, results=doc, warnings=list(a.warnings)))
     return _reset(state), out, new_events
@@ -907,9 +918,8 @@ def after(state: GaitState) -> tuple[GaitState, list[Message]]:
         state = dataclasses.replace(state, memo=_remember(state, full), series=full.series or None)
         for i, ps in enumerate(full.passes):
             if state.summarised_until < ps["end_s"] < now - 1.0:
-                pdoc = _document(
-                    state.frames, full, state.params, i, _frame_records(state.frames, full)
-                )
+                recs = _frame_records(state.frames, full)
+                pdoc = _document(state.frames, full, state.params, i, recs, _walkway(state))
                 out.append(TrialSummary.follow(h, results=pdoc, warnings=pdoc["warnings"]))
                 state = dataclasses.replace(state, summarised_until=ps["end_s"])
     return state, out

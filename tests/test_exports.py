@@ -19,7 +19,13 @@ KNE = MARKER_INDEX["R_KNE"]
 HEE = MARKER_INDEX["L_HEE"]
 
 
-def _doc() -> dict:
+# Floor 800 mm below the optical axis (camera Y points down), the walking line 2.75 m
+# away from -2 m to +2 m: lab X = camera X + 2000, lab Y (away) = Z - 2750, up = 800 - Y.
+WALKWAY = {"floor_plane": [0.0, -1.0, 0.0, 800.0], "start": [-2000.0, 800.0, 2750.0],
+           "end": [2000.0, 800.0, 2750.0]}  # fmt: skip
+
+
+def _doc(walkway: bool = True) -> dict:
     """Frames 10, 11 and 13 of a 30 fps trial (12 was dropped); the right knee seen in
     all three, the left heel only in 11; a heel strike and a toe off."""
     pos = np.full((3, 20, 3), np.nan)
@@ -41,6 +47,7 @@ def _doc() -> dict:
             {"side": "R", "kind": "toe_off", "time_s": 0.1},
         ],
         spatiotemporal={},
+        extra={"walkway": WALKWAY} if walkway else None,
     )
 
 
@@ -52,6 +59,15 @@ def test_trial_arrays_put_a_dropped_frame_on_the_grid_as_missing() -> None:
     np.testing.assert_array_equal(arr.xyz[3, KNE], [130.0, 203.0, 2503.0])
     assert np.isnan(arr.xyz[0, HEE]).all() and arr.xyz[1, HEE, 1] == 700.0
     assert arr.events == (("L", "heel_strike", 0.05), ("R", "toe_off", 0.1))
+
+
+def test_lab_and_camera_positions() -> None:
+    arr = trial_arrays(_doc())
+    np.testing.assert_allclose(arr.positions("lab", y_up=False)[3, KNE], [2130, -247, 597])
+    np.testing.assert_allclose(arr.positions("lab", y_up=True)[3, KNE], [2130, 597, 247])
+    assert arr.positions("camera", y_up=True) is arr.xyz
+    with pytest.raises(InputError, match="walkway"):
+        trial_arrays(_doc(walkway=False)).positions("lab", y_up=False)
 
 
 def test_a_trial_without_frames_cannot_be_exported() -> None:
@@ -72,7 +88,7 @@ def test_the_c3d_reads_back_with_markers_invalid_points_and_events() -> None:
     assert r.point_rate == 30.0 and r.frame_count == 4
     assert [s.strip() for s in r.point_labels][KNE] == "R_KNE"
     assert pts.shape == (4, 20, 5)
-    np.testing.assert_allclose(pts[3, KNE, :3], [130.0, 203.0, 2503.0])
+    np.testing.assert_allclose(pts[3, KNE, :3], [2130.0, -247.0, 597.0])  # lab, Z up
     assert pts[3, KNE, 3] >= 0  # a valid point
     assert (pts[2, :, 3] == -1).all()  # the dropped frame: every point invalid
     assert pts[0, HEE, 3] == -1 and pts[1, HEE, 3] >= 0
@@ -93,9 +109,11 @@ def test_the_trc_has_opensims_header_and_empty_fields_where_unseen() -> None:
     rows = [ln.split("\t") for ln in lines[6:] if ln]
     assert len(rows) == 4 and all(len(r) == 2 + 60 for r in rows)
     assert rows[3][:2] == ["4", "0.10000"]
-    assert rows[3][2 + 3 * KNE : 5 + 3 * KNE] == ["130.000", "203.000", "2503.000"]
+    assert rows[3][2 + 3 * KNE : 5 + 3 * KNE] == ["2130.000", "597.000", "247.000"]  # Y up
     assert rows[2][2:] == [""] * 60  # the dropped frame
-    assert rows[0][2 + 3 * HEE] == "" and rows[1][2 + 3 * HEE] == "-50.000"
+    assert rows[0][2 + 3 * HEE] == "" and rows[1][2 + 3 * HEE] == "1950.000"
+    cam = trc_text(trial_arrays(_doc()), "walk-01.trc", "camera").split("\n")[9].split("\t")
+    assert cam[2 + 3 * KNE : 5 + 3 * KNE] == ["130.000", "203.000", "2503.000"]
 
 
 def test_convert_writes_both_and_names_a_bad_file_without_stopping(tmp_path, capsys) -> None:
@@ -108,6 +126,12 @@ def test_convert_writes_both_and_names_a_bad_file_without_stopping(tmp_path, cap
     assert "walk-02.json" in err and "1 file(s) skipped" in err
     assert sorted(p.name for p in out.iterdir()) == ["walk-01.c3d", "walk-01.trc"]
     assert (out / "walk-01.trc").read_text() == trc_text(trial_arrays(_doc()), "walk-01.trc")
+    # results without the calibration's walkway: camera space (auto)
+    old = write_results(_doc(walkway=False), tmp_path / "old" / "walk-03.json")
+    assert main(["convert", str(old), "--to", "trc"]) == 0
+    assert "camera frame" in capsys.readouterr().out
+    text = (old.parent / "walk-03.trc").read_text()
+    assert text == trc_text(trial_arrays(_doc(walkway=False)), "walk-03.trc", "camera")
 
 
 def test_convert_refuses_an_unknown_format(tmp_path, capsys) -> None:

@@ -48,6 +48,10 @@ def test_two_passes_events_and_knee(session, rate):
     assert scopes[-1] == "trial" and scopes.count("trial") == 1 and "pass" in scopes
     doc = summaries[-1].results
     assert validation_errors(doc) == []
+    # the calibration's walkway, for exports in the lab frame (every document of the trial)
+    for s in summaries:
+        np.testing.assert_allclose(s.results["walkway"]["start"], cal.start, atol=1e-6)
+        np.testing.assert_allclose(s.results["walkway"]["floor_plane"], cal.floor_plane, atol=1e-6)
     # out across the view showing the right side, back showing the left
     assert [p["direction"] for p in doc["passes"]] == [1, -1]
     assert [p["near_side"] for p in doc["passes"]] == ["R", "L"]
