@@ -33,6 +33,7 @@ import io
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -203,3 +204,50 @@ def trc_text(arr: TrialArrays, file_name: str, frame: str = "lab") -> str:
         for k, (t, row) in enumerate(zip(arr.time_s, cells, strict=True))
     ]
     return "\n".join([*head, "", *rows]) + "\n"
+
+
+FORMATS = ("c3d", "trc")
+
+
+def export_formats(text: str) -> tuple[str, ...]:
+    """The formats of a comma-separated list (a command-line option's type)."""
+    import argparse
+
+    out = tuple(s.strip().lower() for s in text.split(",") if s.strip())
+    bad = [s for s in out if s not in FORMATS]
+    if bad or not out:
+        raise argparse.ArgumentTypeError(f"unknown format(s) {bad or text!r}: use {FORMATS}")
+    return out
+
+
+def write_exports(
+    doc: Mapping[str, Any],
+    folder: Path,
+    stem: str,
+    formats: tuple[str, ...] = FORMATS,
+    frame: str = "auto",
+    source: object = "results",
+) -> tuple[list[Path], str]:
+    """Write ``folder/<stem>.c3d`` and/or ``.trc`` of a validated results document.
+
+    ``frame`` "auto" is the lab frame where the document carries the walkway, else the
+    camera's. Returns (paths written, frame used); :class:`InputError` naming ``source``
+    if the trial cannot be exported (no frame, no walkway for ``frame="lab"``).
+    """
+    arr = trial_arrays(doc, source)
+    if frame == "auto":
+        frame = "lab" if arr.floor is not None else "camera"
+    data = {}
+    for fmt in formats:  # everything is made before anything is written
+        if fmt == "c3d":
+            data[fmt] = c3d_bytes(arr, frame)
+        elif fmt == "trc":
+            data[fmt] = trc_text(arr, f"{stem}.trc", frame).encode()
+        else:
+            raise InputError(fmt, f"unknown export format: use {FORMATS}")
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for fmt, blob in data.items():
+        paths.append(folder / f"{stem}.{fmt}")
+        paths[-1].write_bytes(blob)
+    return paths, frame

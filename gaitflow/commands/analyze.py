@@ -24,6 +24,10 @@ subject being camera.json's ``subject.id`` (or ``--subject``) and the visit's da
 ``YYYY-MM-DD`` in the session folder's name (or ``--date``). ``gaitflow progress STORE
 SUBJECT`` then shows the subject's figures over the visits. Analysing a session again
 replaces its folder's results.
+
+``--export c3d,trc`` also writes each trial as C3D and OpenSim TRC beside its JSON
+(``gaitflow.exports``, as ``gaitflow convert``); a trial with no frame to export is named in
+a warning.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import yaml
 
 from gaitflow.benchutil import format_table
 from gaitflow.errors import InputError, StageError
+from gaitflow.exports import export_formats, write_exports
 from gaitflow.markers import trial_kind
 from gaitflow.progress import add_quiet_flag, progress
 from gaitflow.report import side_summary, write_report
@@ -341,6 +346,16 @@ def run(args: argparse.Namespace) -> int:
         for w in o.warnings:
             print(f"warning: {o.trial}: {w}", file=sys.stderr)
         print(f"{o.trial}: {o.json_path}  {o.html_path}")
+        if args.export:
+            try:
+                paths, _ = write_exports(
+                    o.doc, o.json_path.parent, o.trial, args.export, source=o.json_path
+                )
+            except InputError as exc:
+                # a trial without frames (the subject never in view) has nothing to export
+                print(f"warning: {o.trial}: not exported: {exc}", file=sys.stderr)
+                continue
+            print(f"{o.trial}: " + "  ".join(str(p) for p in paths))
     return 0
 
 
@@ -368,6 +383,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--date", help="with --store: the visit's date YYYY-MM-DD (default: from the session name)"
     )
     p.add_argument("--inline", action="store_true", help="run the stages in this process")
+    p.add_argument(
+        "--export",
+        type=export_formats,
+        metavar="c3d,trc",
+        help="also write each trial as C3D and/or OpenSim TRC (as gaitflow convert)",
+    )
     p.add_argument(
         "--param",
         action="append",

@@ -15,47 +15,28 @@ import argparse
 import sys
 from pathlib import Path
 
-FORMATS = ("c3d", "trc")
-
-
-def _formats(text: str) -> tuple[str, ...]:
-    out = tuple(s.strip().lower() for s in text.split(",") if s.strip())
-    bad = [s for s in out if s not in FORMATS]
-    if bad or not out:
-        raise argparse.ArgumentTypeError(f"unknown format(s) {bad or text!r}: use {FORMATS}")
-    return out
+from gaitflow.exports import FORMATS, export_formats
 
 
 def run(args: argparse.Namespace) -> int:
     from gaitflow.errors import GaitflowError
-    from gaitflow.exports import c3d_bytes, trc_text, trial_arrays
+    from gaitflow.exports import write_exports
     from gaitflow.results import read_results
 
     skipped = 0
     for src in args.results:
         try:
-            arr = trial_arrays(read_results(src), src)
+            doc = read_results(src)
+            paths, frame = write_exports(
+                doc, args.out or src.parent, src.stem, args.to, args.frame, src
+            )
         except GaitflowError as exc:
             print(f"error: skipped: {exc}", file=sys.stderr)
             skipped += 1
             continue
-        frame = args.frame
-        if frame == "auto":
-            frame = "lab" if arr.floor is not None else "camera"
-        folder = args.out or src.parent
-        folder.mkdir(parents=True, exist_ok=True)
-        for fmt in args.to:
-            dst = folder / f"{src.stem}.{fmt}"
-            try:
-                if fmt == "c3d":
-                    dst.write_bytes(c3d_bytes(arr, frame))
-                else:
-                    dst.write_text(trc_text(arr, dst.name, frame))
-            except GaitflowError as exc:
-                print(f"error: skipped: {exc}", file=sys.stderr)
-                skipped += 1
-                break
-            print(f"{dst}: {len(arr.xyz)} frames, {len(arr.events)} events, {frame} frame")
+        n, events = len(doc["frames"]), len(doc["events"])
+        for p in paths:
+            print(f"{p}: {n} frames, {events} events, {frame} frame")
     if skipped:
         print(f"{skipped} file(s) skipped", file=sys.stderr)
     return 1 if skipped else 0
@@ -72,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("results", type=Path, nargs="+", help="trial results JSON file(s)")
     p.add_argument(
-        "--to", type=_formats, default=FORMATS, help="formats, comma-separated (default both)"
+        "--to", type=export_formats, default=FORMATS, help="c3d, trc or c3d,trc (default both)"
     )
     p.add_argument("--out", type=Path, help="folder for the files (default: beside each JSON)")
     p.add_argument(
