@@ -21,7 +21,9 @@ are those the pipeline measured, never gap-filled. Two frames (``frame``):
   as 3D points (``POINT:LABELS`` = the marker names, ``POINT:UNITS`` mm, the screen axes set
   so that a viewer shows Y down as down), the heel strikes and toe offs as events
   (``EVENT:CONTEXTS`` Left/Right, ``EVENT:LABELS`` "Foot Strike"/"Foot Off", the Vicon
-  convention, ``EVENT:TIMES`` minutes and seconds from the first frame) and the session and
+  convention, ``EVENT:TIMES`` minutes and seconds from the first frame), the knee flexion
+  as Plug-in Gait's angle outputs (points ``LKneeAngles``, ``RKneeAngles`` listed in
+  ``POINT:ANGLES``: X = flexion in degrees, Y and Z not measured, 0) and the session and
   trial names (``SUBJECTS``, ``TRIAL``).
 - TRC (OpenSim's marker file, tab-separated text): the same markers and frame grid, with
   the frame number and time from the first frame.
@@ -43,6 +45,7 @@ from gaitflow.markers import MARKER_NAMES
 
 EVENT_LABEL = {"heel_strike": "Foot Strike", "toe_off": "Foot Off"}
 EVENT_CONTEXT = {"L": "Left", "R": "Right"}
+KNEE_ANGLES = ("LKneeAngles", "RKneeAngles")  # Plug-in Gait's names
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,9 @@ class TrialArrays:
     floor : (3, 3) rows: walkway axis, away from the camera, floor normal up (camera
         space), and origin (3,) the walking line's start on the floor; None without a
         walkway.
+    knee : (F, 2) knee flexion, degrees (L, R), the results' ``knee_flexion_deg`` at each
+        row's time (linear between its samples; NaN where no sample lies within
+        ``KNEE_REACH_S``).
     """
 
     session: str
@@ -67,6 +73,7 @@ class TrialArrays:
     events: tuple[tuple[str, str, float], ...]
     floor: np.ndarray | None = None
     origin: np.ndarray | None = None
+    knee: np.ndarray | None = None
 
     def positions(self, frame: str, y_up: bool) -> np.ndarray:
         """(F, 20, 3) mm in ``frame`` ("lab" or "camera"); ``y_up``: OpenSim's lab axes
@@ -121,17 +128,38 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
         for e in doc.get("events", [])
         if e.get("kind") in EVENT_LABEL and e.get("side") in EVENT_CONTEXT
     )
+    time_s = np.arange(n) / rate
     return TrialArrays(
         session=str(doc.get("session", "")),
         trial=str(doc.get("trial", "")),
         rate=rate,
         frame=np.arange(first, first + n),
-        time_s=np.arange(n) / rate,
+        time_s=time_s,
         xyz=xyz,
         events=events,
         floor=floor,
         origin=origin,
+        knee=_knee_on_grid(doc.get("knee_flexion_deg") or {}, t0 + time_s),
     )
+
+
+KNEE_REACH_S = 0.02  # a knee sample farther than this from a row's time does not reach it
+
+
+def _knee_on_grid(knee: Mapping[str, Any], t: np.ndarray) -> np.ndarray:
+    """(F, 2) the results' knee flexion (L, R) at times ``t`` (s, the results' time)."""
+    out = np.full((len(t), 2), np.nan)
+    tk = np.asarray([np.nan if v is None else v for v in knee.get("time_s", [])], float)
+    for j, side in enumerate("LR"):
+        v = np.asarray([np.nan if x is None else x for x in knee.get(side, [])], float)
+        ok = np.isfinite(tk) & np.isfinite(v) if len(v) == len(tk) else np.zeros(0, bool)
+        if ok.sum() < 2:
+            continue
+        ts, vs = tk[ok], v[ok]
+        k = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1)
+        near = np.minimum(np.abs(t - ts[k - 1]), np.abs(ts[k] - t))
+        out[:, j] = np.where(near <= KNEE_REACH_S, np.interp(t, ts, vs), np.nan)
+    return out
 
 
 def c3d_bytes(arr: TrialArrays, frame: str = "lab") -> bytes:
@@ -140,13 +168,21 @@ def c3d_bytes(arr: TrialArrays, frame: str = "lab") -> bytes:
 
     xyz = arr.positions(frame, y_up=False)
     w = c3d.Writer(point_rate=arr.rate, point_units="mm  ")
-    w.set_point_labels(list(MARKER_NAMES))
+    # the knee flexion as Vicon's model outputs are stored: an "angle" point per side
+    # (X = flexion, deg; Y and Z, abduction and rotation, are not measured: 0)
+    knee = arr.knee if arr.knee is not None else np.full((len(xyz), 2), np.nan)
+    w.set_point_labels([*MARKER_NAMES, *KNEE_ANGLES])
+    text, width = c3d.Writer.pack_labels(list(KNEE_ANGLES))
+    w.point_group.add_str("ANGLES", "Angle outputs", text, width, len(KNEE_ANGLES))
+    w.point_group.add_str("ANGLE_UNITS", "Angle unit", "deg", 3)
     # what a viewer shows to the right and up: the walkway and the vertical, or the image
     # axes (Y points down it)
     w.set_screen_axis(*(("+X", "+Z") if frame == "lab" else ("+X", "-Y")))
-    pts = np.zeros((len(xyz), len(MARKER_NAMES), 5), np.float32)
-    seen = np.isfinite(xyz).all(axis=2)
-    pts[..., :3] = np.where(seen[..., None], xyz, 0.0)
+    vals = np.concatenate([xyz, np.zeros((len(xyz), 2, 3))], axis=1)
+    vals[:, len(MARKER_NAMES) :, 0] = knee
+    pts = np.zeros((len(xyz), vals.shape[1], 5), np.float32)
+    seen = np.isfinite(vals).all(axis=2)
+    pts[..., :3] = np.where(seen[..., None], vals, 0.0)
     pts[..., 3] = np.where(seen, 0.0, -1.0)  # residual -1: an invalid point
     empty = np.zeros((0, 0), np.float32)
     w.add_frames([(p, empty) for p in pts])

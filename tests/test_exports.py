@@ -40,8 +40,9 @@ def _doc(walkway: bool = True) -> dict:
         frame_time_s=np.array([0.0, 1 / 30, 3 / 30]),
         positions=pos,
         pixels=pix,
-        knee_time_s=np.zeros(0),
-        knee_deg={"L": np.zeros(0), "R": np.zeros(0)},
+        # 100 Hz: left 10 + 100 t deg throughout, right only up to 0.03 s
+        knee_time_s=np.arange(11) / 100,
+        knee_deg={"L": 10 + np.arange(11), "R": np.where(np.arange(11) <= 3, 20.0, np.nan)},
         events=[
             {"side": "L", "kind": "heel_strike", "time_s": 0.05},
             {"side": "R", "kind": "toe_off", "time_s": 0.1},
@@ -59,6 +60,9 @@ def test_trial_arrays_put_a_dropped_frame_on_the_grid_as_missing() -> None:
     np.testing.assert_array_equal(arr.xyz[3, KNE], [130.0, 203.0, 2503.0])
     assert np.isnan(arr.xyz[0, HEE]).all() and arr.xyz[1, HEE, 1] == 700.0
     assert arr.events == (("L", "heel_strike", 0.05), ("R", "toe_off", 0.1))
+    # the knee at the rows' times; none where no sample lies within 20 ms
+    np.testing.assert_allclose(arr.knee[:, 0], 10 + 100 * arr.time_s)
+    np.testing.assert_allclose(arr.knee[:, 1], [20.0, 20.0, np.nan, np.nan])
 
 
 def test_lab_and_camera_positions() -> None:
@@ -87,11 +91,15 @@ def test_the_c3d_reads_back_with_markers_invalid_points_and_events() -> None:
         pts = np.array([p for _, p, _ in r.read_frames()])
     assert r.point_rate == 30.0 and r.frame_count == 4
     assert [s.strip() for s in r.point_labels][KNE] == "R_KNE"
-    assert pts.shape == (4, 20, 5)
+    assert pts.shape == (4, 22, 5)  # the 20 markers, then the two knee angle points
     np.testing.assert_allclose(pts[3, KNE, :3], [2130.0, -247.0, 597.0])  # lab, Z up
     assert pts[3, KNE, 3] >= 0  # a valid point
-    assert (pts[2, :, 3] == -1).all()  # the dropped frame: every point invalid
+    assert (pts[2, :20, 3] == -1).all()  # the dropped frame: every marker invalid
     assert pts[0, HEE, 3] == -1 and pts[1, HEE, 3] >= 0
+    angles = [s.strip() for s in r.get("POINT").get("ANGLES").string_array]
+    assert angles == [s.strip() for s in r.point_labels][20:] == ["LKneeAngles", "RKneeAngles"]
+    np.testing.assert_allclose(pts[:, 20, 0], 10 + 100 * np.arange(4) / 30, rtol=1e-6)
+    assert (pts[:, 20, 3] >= 0).all() and (pts[:, 21, 3] == [0, 0, -1, -1]).all()
     ev = r.get("EVENT")
     assert [s.strip() for s in ev.get("CONTEXTS").string_array] == ["Left", "Right"]
     assert [s.strip() for s in ev.get("LABELS").string_array] == ["Foot Strike", "Foot Off"]
