@@ -17,9 +17,12 @@ are those the pipeline measured, never gap-filled. Two frames (``frame``):
   Both right-handed; the frame stays put when the subject walks back.
 - ``camera``: the results' camera space (X right, Y down, Z forward).
 
+Formats:
+
 - C3D (read by Vicon Nexus, Visual3D, Mokka, ezc3d, btk, kineticstoolkit): the 20 markers
-  as 3D points (``POINT:LABELS`` = the marker names, ``POINT:UNITS`` mm, the screen axes set
-  so that a viewer shows Y down as down), the heel strikes and toe offs as events
+  as 3D points (``POINT:LABELS`` = the marker names, ``POINT:UNITS`` mm, the screen axes
+  set so that a viewer shows the walkway across and Z up, or in camera space the image
+  the right way up), the heel strikes and toe offs as events
   (``EVENT:CONTEXTS`` Left/Right, ``EVENT:LABELS`` "Foot Strike"/"Foot Off", the Vicon
   convention, ``EVENT:TIMES`` minutes and seconds from the first frame), the knee flexion
   as Plug-in Gait's angle outputs (points ``LKneeAngles``, ``RKneeAngles`` listed in
