@@ -27,7 +27,7 @@ Formats:
   convention, ``EVENT:TIMES`` minutes and seconds from the first frame), the knee flexion
   as Plug-in Gait's angle outputs (points ``LKneeAngles``, ``RKneeAngles`` listed in
   ``POINT:ANGLES``: X = flexion in degrees, Y and Z not measured, 0) and the session and
-  trial names (``SUBJECTS``, ``TRIAL``).
+  trial names (``GAITFLOW:SESSION``, ``GAITFLOW:TRIAL``).
 - TRC (OpenSim's marker file, tab-separated text): the same markers and frame grid, with
   the frame number and time from the first frame.
 """
@@ -210,10 +210,14 @@ def c3d_bytes(arr: TrialArrays, frame: str = "lab") -> bytes:
             bytes=times.tobytes(),
             dimensions=[2, len(times)],
         )
-    for key, what, value in (("SUBJECTS", "Session", arr.session), ("TRIAL", "Trial", arr.trial)):
+    # where the trial came from, in a group of our own (C3D's SUBJECTS holds a subject's
+    # name, which the results do not carry)
+    own = w.get_create("GAITFLOW")
+    for key, what, value in (("SESSION", "Session folder", arr.session),
+                             ("TRIAL", "Trial (recording)", arr.trial)):  # fmt: skip
         if value:
             text, width = c3d.Writer.pack_labels([value])
-            w.get_create(key).add_str("NAMES", what, text, width, 1)
+            own.add_str(key, what, text, width, 1)
     buf = io.BytesIO()
     with warnings.catch_warnings():
         # the library's note that the file has no analog channels: by design here

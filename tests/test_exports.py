@@ -105,7 +105,9 @@ def test_the_c3d_reads_back_with_markers_invalid_points_and_events() -> None:
     assert [s.strip() for s in ev.get("LABELS").string_array] == ["Foot Strike", "Foot Off"]
     # (minutes, seconds) per event
     np.testing.assert_allclose(ev.get("TIMES").float_array, [[0.0, 0.05], [0.0, 0.1]])
-    assert r.get("TRIAL").get("NAMES").string_array[0].strip() == "walk-01"
+    own = r.get("GAITFLOW")
+    assert own.get("TRIAL").string_array[0].strip() == "walk-01"
+    assert own.get("SESSION").string_array[0].strip() == "S01-2026-11-27"
 
 
 def test_the_trc_has_opensims_header_and_empty_fields_where_unseen() -> None:
