@@ -148,3 +148,16 @@ def test_convert_refuses_an_unknown_format(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as e:
         main(["convert", str(tmp_path / "walk-01.json"), "--to", "c3d,xlsx"])
     assert e.value.code == 2 and "xlsx" in capsys.readouterr().err
+
+
+def test_convert_refuses_two_results_of_one_name_into_one_folder(tmp_path) -> None:
+    a = write_results(_doc(), tmp_path / "S01" / "walk-01.json")
+    b = write_results(_doc(), tmp_path / "S02" / "walk-01.json")
+    out = tmp_path / "exports"
+    assert main(["convert", str(a), str(b), "--out", str(out)]) == 2
+    assert not out.exists()
+    # beside each JSON (no --out) they do not collide
+    assert main(["convert", str(a), str(b)]) == 0
+    assert (tmp_path / "S01" / "walk-01.c3d").exists() and (
+        tmp_path / "S02" / "walk-01.trc"
+    ).exists()

@@ -19,10 +19,16 @@ from gaitflow.exports import FORMATS, export_formats
 
 
 def run(args: argparse.Namespace) -> int:
-    from gaitflow.errors import GaitflowError
+    from gaitflow.errors import GaitflowError, InputError
     from gaitflow.exports import write_exports
     from gaitflow.results import read_results
 
+    if args.out is not None:
+        # one folder for all: two results of one name would overwrite each other's files
+        stems = [src.stem for src in args.results]
+        twice = sorted({s for s in stems if stems.count(s) > 1})
+        if twice:
+            raise InputError("--out", f"results named alike would overwrite each other: {twice}")
     skipped = 0
     for src in args.results:
         try:
