@@ -10,8 +10,9 @@ Conventions: axis 0 is time (camera frames), axis 1 follows
 C3D writes it as an invalid point (residual -1), the TRC as an empty field. The positions
 are those the pipeline measured, never gap-filled. Two frames (``frame``):
 
-- ``lab`` (the default where the results carry the calibration's ``walkway``): origin at
-  the walking line's start on the floor, X along the walkway (start to end), Z up (the
+- ``lab`` (the default where the results carry the calibration's ``walkway``): the
+  pipeline's floor frame (``stages/model.FloorFrame``): origin at the walking line's start
+  on the floor, X along the walkway (toward the image's right), Z up (the
   floor normal) and Y = Z x X (away from the camera) in the C3D, the ISB / Vicon lab
   convention; X along the walkway, Y up and Z toward the camera in the TRC, OpenSim's.
   Both right-handed; the frame stays put when the subject walks back.
@@ -45,6 +46,8 @@ import numpy as np
 
 from gaitflow.errors import InputError
 from gaitflow.markers import MARKER_NAMES
+from gaitflow.results import floats
+from gaitflow.stages.model import FloorFrame
 
 EVENT_LABEL = {"heel_strike": "Foot Strike", "toe_off": "Foot Off"}
 EVENT_CONTEXT = {"L": "Left", "R": "Right"}
@@ -59,9 +62,9 @@ class TrialArrays:
     time_s : (F,) s from the first row (frame k is k / rate).
     xyz : (F, 20, 3) mm, camera space; NaN where not seen (or the frame was dropped).
     events : ((side, kind, time_s), ...) with time_s from the first row.
-    floor : (3, 3) rows: walkway axis, away from the camera, floor normal up (camera
-        space), and origin (3,) the walking line's start on the floor; None without a
-        walkway.
+    floor : the pipeline's floor frame of the results' walkway (``stages/model.FloorFrame``:
+        walkway axis, away from the camera, up; origin the line's start on the floor); None
+        without a walkway.
     knee : (F, 2) knee flexion, degrees (L, R), the results' ``knee_flexion_deg`` at each
         row's time (linear between its samples; NaN where no sample lies within
         ``KNEE_REACH_S``).
@@ -74,8 +77,7 @@ class TrialArrays:
     time_s: np.ndarray
     xyz: np.ndarray
     events: tuple[tuple[str, str, float], ...]
-    floor: np.ndarray | None = None
-    origin: np.ndarray | None = None
+    floor: FloorFrame | None = None
     knee: np.ndarray | None = None
 
     def positions(self, frame: str, y_up: bool) -> np.ndarray:
@@ -85,13 +87,12 @@ class TrialArrays:
             return self.xyz
         if frame != "lab":
             raise InputError(frame, "unknown frame: use lab or camera")
-        if self.floor is None or self.origin is None:
+        if self.floor is None:
             raise InputError(
                 self.trial, "the results carry no walkway (calibration): use frame camera"
             )
-        e1, e2, up = self.floor
-        rows = np.stack([e1, up, -e2]) if y_up else self.floor
-        return (self.xyz - self.origin) @ rows.T
+        q = self.floor.to_floor(self.xyz)  # (walkway, away from the camera, up)
+        return np.stack([q[..., 0], q[..., 2], -q[..., 1]], axis=-1) if y_up else q
 
 
 def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArrays:
@@ -115,16 +116,12 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
             p = f["markers"].get(name)
             if p is not None:
                 xyz[k, j] = p
-    floor = origin = None
     walk = doc.get("walkway")
-    if walk is not None:
-        from gaitflow.stages.calibrate import floor_frame
-
-        plane, start, end = (np.asarray(walk[k], float) for k in ("floor_plane", "start", "end"))
-        floor = floor_frame(plane, start, end)
-        # the walking line's start, dropped onto the floor
-        norm = np.linalg.norm(plane[:3])
-        origin = start - (start @ plane[:3] + plane[3]) / norm * (plane[:3] / norm)
+    floor = (
+        None
+        if walk is None
+        else FloorFrame.from_walkway(walk["floor_plane"], walk["start"], walk["end"])
+    )
     t0 = float(frames[0]["time_s"])
     events = tuple(
         (str(e["side"]), str(e["kind"]), float(e["time_s"]) - t0)
@@ -141,7 +138,6 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
         xyz=xyz,
         events=events,
         floor=floor,
-        origin=origin,
         knee=_knee_on_grid(doc.get("knee_flexion_deg") or {}, t0 + time_s),
     )
 
@@ -152,9 +148,9 @@ KNEE_REACH_S = 0.02  # a knee sample farther than this from a row's time does no
 def _knee_on_grid(knee: Mapping[str, Any], t: np.ndarray) -> np.ndarray:
     """(F, 2) the results' knee flexion (L, R) at times ``t`` (s, the results' time)."""
     out = np.full((len(t), 2), np.nan)
-    tk = np.asarray([np.nan if v is None else v for v in knee.get("time_s", [])], float)
+    tk = floats(knee.get("time_s", []))
     for j, side in enumerate("LR"):
-        v = np.asarray([np.nan if x is None else x for x in knee.get(side, [])], float)
+        v = floats(knee.get(side, []))
         ok = np.isfinite(tk) & np.isfinite(v) if len(v) == len(tk) else np.zeros(0, bool)
         if ok.sum() < 2:
             continue

@@ -37,6 +37,7 @@ import numpy as np
 
 from gaitflow import __version__
 from gaitflow.errors import InputError
+from gaitflow.results import floats
 
 SIDES = ("L", "R")
 SIDE_NAME = {"L": "Left", "R": "Right"}
@@ -61,10 +62,6 @@ def normative() -> dict[str, Any]:
 # figures from a results document
 
 
-def _arr(xs: Sequence[float | None]) -> np.ndarray:
-    return np.array([np.nan if v is None else v for v in xs], dtype=float)
-
-
 def knee_cycles(doc: Mapping[str, Any], side: str, min_known: float = 0.5) -> np.ndarray:
     """Knee flexion of every complete gait cycle of one side, normalised to 101 points.
 
@@ -73,8 +70,8 @@ def knee_cycles(doc: Mapping[str, Any], side: str, min_known: float = 0.5) -> np
     hidden for longer than the gap filler bridges); cycles with less than ``min_known`` of
     their points known are left out. Returns (C, 101) deg.
     """
-    kt = _arr(doc["knee_flexion_deg"]["time_s"])
-    kd = _arr(doc["knee_flexion_deg"][side])
+    kt = floats(doc["knee_flexion_deg"]["time_s"])
+    kd = floats(doc["knee_flexion_deg"][side])
     out = []
     for c in doc.get("cycles", []):
         if c["side"] != side or "next_heel_strike_s" not in c:
@@ -109,8 +106,8 @@ def knee_windows(
     knee's time base; one counts when ``min_known`` of its samples are known. Returns (W, 2)
     = (min, max) per window.
     """
-    kt = _arr(doc["knee_flexion_deg"]["time_s"])
-    kd = _arr(doc["knee_flexion_deg"][side])
+    kt = floats(doc["knee_flexion_deg"]["time_s"])
+    kd = floats(doc["knee_flexion_deg"][side])
     if not (np.isfinite(period_s) and period_s > 0) or not np.isfinite(kd).any():
         return np.zeros((0, 2))
     out = []
@@ -269,7 +266,7 @@ def time_figure(doc: Mapping[str, Any]) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    kt = _arr(doc["knee_flexion_deg"]["time_s"])
+    kt = floats(doc["knee_flexion_deg"]["time_s"])
     fig, ax = plt.subplots(figsize=(10, 3.0))
     for p in doc.get("passes", []):
         ax.axvspan(p["start_s"], p["end_s"], color="0.93")
@@ -277,7 +274,7 @@ def time_figure(doc: Mapping[str, Any]) -> str:
         ax.text(p["start_s"], 1.0, f" pass {arrow}", transform=ax.get_xaxis_transform(),
                 va="top", fontsize=8, color="0.4")  # fmt: skip
     for s in SIDES:
-        kd = _arr(doc["knee_flexion_deg"][s])
+        kd = floats(doc["knee_flexion_deg"][s])
         ax.plot(kt, kd, color=COLOURS[s], lw=1.2, label=f"{SIDE_NAME[s]}")
         for e in doc["events"]:
             if e["side"] != s:

@@ -31,6 +31,11 @@ FORMAT = "gaitflow.trial-results"
 VERSION = 1
 
 
+def floats(xs: Sequence[float | None]) -> np.ndarray:
+    """A results list of numbers as a float array, ``null`` (None) as NaN."""
+    return np.array([np.nan if v is None else v for v in xs], dtype=float)
+
+
 def _num(v: Any, ndigits: int = 3) -> float | None:
     """A JSON-safe float (None for NaN/inf), rounded to keep files small."""
     if v is None:

@@ -798,11 +798,12 @@ def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
         return _reset(state), out, []
     a = _analyse_trial(state)
     records = _frame_records(state.frames, a)
-    doc = _document(state.frames, a, state.params, records=records, walkway=_walkway(state))
+    walkway = _walkway(state)
+    doc = _document(state.frames, a, state.params, records=records, walkway=walkway)
     new_events = _new_events(state, a.events, float("inf"))
     for i, ps in enumerate(a.passes):
         if ps["end_s"] > state.summarised_until:
-            pdoc = _document(state.frames, a, state.params, i, records, _walkway(state))
+            pdoc = _document(state.frames, a, state.params, i, records, walkway)
             out.append(TrialSummary.follow(last, results=pdoc, warnings=pdoc["warnings"]))
     out.append(TrialSummary.follow(last, results=doc, warnings=list(a.warnings)))
     return _reset(state), out, new_events
@@ -916,10 +917,10 @@ def after(state: GaitState) -> tuple[GaitState, list[Message]]:
     if any(state.summarised_until < ps["end_s"] < now - 1.0 for ps in a.passes):
         full = _analyse_trial(state)
         state = dataclasses.replace(state, memo=_remember(state, full), series=full.series or None)
+        recs, walkway = _frame_records(state.frames, full), _walkway(state)
         for i, ps in enumerate(full.passes):
             if state.summarised_until < ps["end_s"] < now - 1.0:
-                recs = _frame_records(state.frames, full)
-                pdoc = _document(state.frames, full, state.params, i, recs, _walkway(state))
+                pdoc = _document(state.frames, full, state.params, i, recs, walkway)
                 out.append(TrialSummary.follow(h, results=pdoc, warnings=pdoc["warnings"]))
                 state = dataclasses.replace(state, summarised_until=ps["end_s"])
     return state, out

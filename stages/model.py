@@ -195,24 +195,32 @@ class FloorFrame:
         ``camera_height_mm``: a = X, e = Z, h = camera height - Y.
         """
         if rec is not None:
-            plane = np.asarray(rec.floor_plane, dtype=np.float64)
-            start = np.asarray(rec.start, dtype=np.float64)
-            end = np.asarray(rec.end, dtype=np.float64)
-            if np.isfinite(plane).all() and np.isfinite(start).all() and np.isfinite(end).all():
-                n = plane[:3] / np.linalg.norm(plane[:3])
-                e1 = end - start
-                e1 = e1 - (e1 @ n) * n
-                norm = np.linalg.norm(e1)
-                if norm > 0:
-                    e1 = e1 / norm
-                    if e1[0] < 0:
-                        e1 = -e1
-                    e2 = np.cross(n, e1)
-                    # Origin on the floor plane: height 0 there.
-                    origin = start - (n @ start + plane[3] / np.linalg.norm(plane[:3])) * n
-                    return cls(np.stack([e1, e2, n]), origin, float(np.linalg.norm(end - start)))
+            ff = cls.from_walkway(rec.floor_plane, rec.start, rec.end)
+            if ff is not None:
+                return ff
         rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
         return cls(rot, np.array([0.0, camera_height_mm, 0.0]))
+
+    @classmethod
+    def from_walkway(cls, plane: Any, start: Any, end: Any) -> FloorFrame | None:
+        """The floor frame of a floor plane (4,) and walking line start, end (3,) in camera
+        mm; None if any is not finite or the line is vertical."""
+        plane, start, end = (np.asarray(v, dtype=np.float64) for v in (plane, start, end))
+        if not (np.isfinite(plane).all() and np.isfinite(start).all() and np.isfinite(end).all()):
+            return None
+        n = plane[:3] / np.linalg.norm(plane[:3])
+        e1 = end - start
+        e1 = e1 - (e1 @ n) * n
+        norm = np.linalg.norm(e1)
+        if not norm > 0:
+            return None
+        e1 = e1 / norm
+        if e1[0] < 0:
+            e1 = -e1
+        e2 = np.cross(n, e1)
+        # Origin on the floor plane: height 0 there.
+        origin = start - (n @ start + plane[3] / np.linalg.norm(plane[:3])) * n
+        return cls(np.stack([e1, e2, n]), origin, float(np.linalg.norm(end - start)))
 
 
 # --- labelling a standing pose --------------------------------------------------------
