@@ -1,9 +1,9 @@
-"""Trial results in the formats of researchers' tools: C3D and OpenSim's TRC.
+"""Trial results in the formats of researchers' tools: C3D, OpenSim's TRC and MOT.
 
 A results document (``../shared/spec/results.md``) holds the labelled markers per camera
 frame and the gait events. :func:`trial_arrays` turns it into arrays on the camera's frame
 grid (a frame the sensor dropped is a row of NaN, so row k is always k frame intervals
-after the first); :func:`c3d_bytes` and :func:`trc_text` write those.
+after the first); :func:`c3d_bytes`, :func:`trc_text` and :func:`mot_text` write those.
 
 Conventions: axis 0 is time (camera frames), axis 1 follows
 :data:`gaitflow.markers.MARKER_NAMES`, axis 2 is (X, Y, Z) in mm. NaN means not seen; the
@@ -31,6 +31,11 @@ Formats:
   trial names (``GAITFLOW:SESSION``, ``GAITFLOW:TRIAL``).
 - TRC (OpenSim's marker file, tab-separated text): the same markers and frame grid, with
   the frame number and time from the first frame.
+- MOT (OpenSim's motion / Storage file, version 1, ``inDegrees=yes``): the knee flexion on
+  the results' own time base (100 Hz, gap-filled as the results carry it, not the camera's
+  grid), time from the first frame, columns ``knee_flexion_l`` and ``knee_flexion_r``
+  (flexion positive, 0 = straight: the results' definition, not an OpenSim model's
+  coordinate, whose sign differs between models); ``NaN`` where the results have none.
 """
 
 from __future__ import annotations
@@ -68,6 +73,8 @@ class TrialArrays:
     knee : (F, 2) knee flexion, degrees (L, R), the results' ``knee_flexion_deg`` at each
         row's time (linear between its samples; NaN where no sample lies within
         ``KNEE_REACH_S``).
+    knee_time_s : (K,) the results' own knee time base, s from the first row.
+    knee_deg : (K, 2) the results' knee flexion (L, R) on it, degrees; NaN where unknown.
     """
 
     session: str
@@ -79,6 +86,8 @@ class TrialArrays:
     events: tuple[tuple[str, str, float], ...]
     floor: FloorFrame | None = None
     knee: np.ndarray | None = None
+    knee_time_s: np.ndarray | None = None
+    knee_deg: np.ndarray | None = None
 
     def positions(self, frame: str, y_up: bool) -> np.ndarray:
         """(F, 20, 3) mm in ``frame`` ("lab" or "camera"); ``y_up``: OpenSim's lab axes
@@ -129,6 +138,7 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
         if e.get("kind") in EVENT_LABEL and e.get("side") in EVENT_CONTEXT
     )
     time_s = np.arange(n) / rate
+    knee_t, knee_deg = _knee_samples(doc.get("knee_flexion_deg") or {})
     return TrialArrays(
         session=str(doc.get("session", "")),
         trial=str(doc.get("trial", "")),
@@ -138,23 +148,38 @@ def trial_arrays(doc: Mapping[str, Any], source: object = "results") -> TrialArr
         xyz=xyz,
         events=events,
         floor=floor,
-        knee=_knee_on_grid(doc.get("knee_flexion_deg") or {}, t0 + time_s),
+        knee=_knee_on_grid(knee_t - t0, knee_deg, time_s),
+        knee_time_s=knee_t - t0,
+        knee_deg=knee_deg,
     )
 
 
 KNEE_REACH_S = 0.02  # a knee sample farther than this from a row's time does not reach it
 
 
-def _knee_on_grid(knee: Mapping[str, Any], t: np.ndarray) -> np.ndarray:
-    """(F, 2) the results' knee flexion (L, R) at times ``t`` (s, the results' time)."""
-    out = np.full((len(t), 2), np.nan)
+def _knee_samples(knee: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) time (s, the results' time) with a finite time and (K, 2) flexion (L, R).
+
+    A side whose list does not match the time base is unknown throughout (NaN).
+    """
     tk = floats(knee.get("time_s", []))
+    deg = np.full((len(tk), 2), np.nan)
     for j, side in enumerate("LR"):
         v = floats(knee.get(side, []))
-        ok = np.isfinite(tk) & np.isfinite(v) if len(v) == len(tk) else np.zeros(0, bool)
+        if len(v) == len(tk):
+            deg[:, j] = v
+    keep = np.isfinite(tk)
+    return tk[keep], deg[keep]
+
+
+def _knee_on_grid(tk: np.ndarray, deg: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(F, 2) the knee flexion samples (``tk``, ``deg`` (K, 2)) at times ``t``."""
+    out = np.full((len(t), 2), np.nan)
+    for j in range(2):
+        ok = np.isfinite(deg[:, j])
         if ok.sum() < 2:
             continue
-        ts, vs = tk[ok], v[ok]
+        ts, vs = tk[ok], deg[ok, j]
         k = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1)
         near = np.minimum(np.abs(t - ts[k - 1]), np.abs(ts[k] - t))
         out[:, j] = np.where(near <= KNEE_REACH_S, np.interp(t, ts, vs), np.nan)
@@ -245,7 +270,27 @@ def trc_text(arr: TrialArrays, file_name: str, frame: str = "lab") -> str:
     return "\n".join([*head, "", *rows]) + "\n"
 
 
-FORMATS = ("c3d", "trc")
+MOT_COLUMNS = ("time", "knee_flexion_l", "knee_flexion_r")
+
+
+def mot_text(arr: TrialArrays, name: str) -> str:
+    """The knee flexion as an OpenSim motion file (Storage version 1, degrees, tab-separated).
+
+    One row per sample of the results' knee time base (time from the first frame); ``NaN``
+    where a side's flexion is unknown.
+    """
+    t = arr.knee_time_s if arr.knee_time_s is not None else np.zeros(0)
+    deg = arr.knee_deg if arr.knee_deg is not None else np.zeros((0, 2))
+    head = [name, "version=1", f"nRows={len(t)}", f"nColumns={len(MOT_COLUMNS)}",
+            "inDegrees=yes", "endheader", "\t".join(MOT_COLUMNS)]  # fmt: skip
+    rows = [
+        f"{ti:.5f}\t" + "\t".join("NaN" if not np.isfinite(v) else f"{v:.4f}" for v in d)
+        for ti, d in zip(t, deg, strict=True)
+    ]
+    return "\n".join([*head, *rows]) + "\n"
+
+
+FORMATS = ("c3d", "trc", "mot")
 
 
 def export_formats(text: str) -> tuple[str, ...]:
@@ -267,7 +312,7 @@ def write_exports(
     frame: str = "auto",
     source: object = "results",
 ) -> tuple[list[Path], str]:
-    """Write ``folder/<stem>.c3d`` and/or ``.trc`` of a validated results document.
+    """Write ``folder/<stem>.c3d``, ``.trc`` and/or ``.mot`` of a validated results document.
 
     ``frame`` "auto" is the lab frame where the document carries the walkway, else the
     camera's. Returns (paths written, frame used); :class:`InputError` naming ``source``
@@ -282,6 +327,8 @@ def write_exports(
             data[fmt] = c3d_bytes(arr, frame)
         elif fmt == "trc":
             data[fmt] = trc_text(arr, f"{stem}.trc", frame).encode()
+        elif fmt == "mot":
+            data[fmt] = mot_text(arr, f"{stem}.mot").encode()
         else:
             raise InputError(fmt, f"unknown export format: use {FORMATS}")
     folder.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""Trial results as C3D and OpenSim TRC (``gaitflow.exports``, ``gaitflow convert``)."""
+"""Trial results as C3D, OpenSim TRC and MOT (``gaitflow.exports``, ``gaitflow convert``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from gaitflow.cli import main
 from gaitflow.errors import InputError
-from gaitflow.exports import c3d_bytes, trc_text, trial_arrays
+from gaitflow.exports import c3d_bytes, mot_text, trc_text, trial_arrays
 from gaitflow.markers import MARKER_INDEX
 from gaitflow.results import build_results, write_results
 
@@ -126,7 +126,24 @@ def test_the_trc_has_opensims_header_and_empty_fields_where_unseen() -> None:
     assert cam[2 + 3 * KNE : 5 + 3 * KNE] == ["130.000", "203.000", "2503.000"]
 
 
-def test_convert_writes_both_and_names_a_bad_file_without_stopping(tmp_path, capsys) -> None:
+def test_mot_holds_the_knee_on_the_results_time_base_from_the_first_frame() -> None:
+    doc = _doc()
+    # a trial whose clock does not start at 0: times in the file are from the first frame
+    for f in doc["frames"]:
+        f["time_s"] += 5.0
+    doc["knee_flexion_deg"]["time_s"] = [t + 5.0 for t in doc["knee_flexion_deg"]["time_s"]]
+    lines = mot_text(trial_arrays(doc), "walk-01.mot").split("\n")
+    assert lines[:7] == ["walk-01.mot", "version=1", "nRows=11", "nColumns=3", "inDegrees=yes",
+                         "endheader", "time\tknee_flexion_l\tknee_flexion_r"]  # fmt: skip
+    rows = np.array([[float(x) for x in r.split("\t")] for r in lines[7:-1]])
+    assert rows.shape == (11, 3) and lines[-1] == ""
+    np.testing.assert_allclose(rows[:, 0], np.arange(11) / 100)
+    np.testing.assert_allclose(rows[:, 1], 10 + np.arange(11))
+    np.testing.assert_allclose(rows[:4, 2], 20.0)
+    assert np.isnan(rows[4:, 2]).all() and lines[11].endswith("\tNaN")
+
+
+def test_convert_writes_all_and_names_a_bad_file_without_stopping(tmp_path, capsys) -> None:
     good = write_results(_doc(), tmp_path / "walk-01.json")
     bad = tmp_path / "walk-02.json"
     bad.write_text(json.dumps({"format": "something else"}))
@@ -134,7 +151,7 @@ def test_convert_writes_both_and_names_a_bad_file_without_stopping(tmp_path, cap
     assert main(["convert", str(bad), str(good), "--out", str(out)]) == 1
     err = capsys.readouterr().err
     assert "walk-02.json" in err and "1 file(s) skipped" in err
-    assert sorted(p.name for p in out.iterdir()) == ["walk-01.c3d", "walk-01.trc"]
+    assert sorted(p.name for p in out.iterdir()) == ["walk-01.c3d", "walk-01.mot", "walk-01.trc"]
     assert (out / "walk-01.trc").read_text() == trc_text(trial_arrays(_doc()), "walk-01.trc")
     # results without the calibration's walkway: camera space (auto)
     old = write_results(_doc(walkway=False), tmp_path / "old" / "walk-03.json")

@@ -1,8 +1,9 @@
-"""``gaitflow convert RESULTS.json... --to c3d,trc``: trial results for researchers' tools.
+"""``gaitflow convert RESULTS.json... --to c3d,trc,mot``: trial results for researchers' tools.
 
 Each trial results JSON that ``gaitflow analyze`` wrote (``../shared/spec/results.md``)
-becomes a C3D file (markers and gait events: Vicon Nexus, Visual3D, Mokka, ezc3d, btk) and
-an OpenSim TRC marker file, beside it or in ``--out`` (``gaitflow.exports``). Markers are
+becomes a C3D file (markers, gait events and knee angles: Vicon Nexus, Visual3D, Mokka,
+ezc3d, btk), an OpenSim TRC marker file and an OpenSim MOT of the knee flexion, beside it
+or in ``--out`` (``gaitflow.exports``). Markers are
 in the lab frame (X along the calibrated walkway, Z up in the C3D, Y up in the TRC) where
 the results carry the calibration's walkway, else in camera space (``--frame``). A file
 that is not a valid results document is named on stderr, counted and skipped; the others
@@ -42,7 +43,10 @@ def run(args: argparse.Namespace) -> int:
             continue
         n, events = len(doc["frames"]), len(doc["events"])
         for p in paths:
-            print(f"{p}: {n} frames, {events} events, {frame} frame")
+            if p.suffix == ".mot":
+                print(f"{p}: knee flexion, {len(doc['knee_flexion_deg']['time_s'])} samples")
+            else:
+                print(f"{p}: {n} frames, {events} events, {frame} frame")
     if skipped:
         print(f"{skipped} file(s) skipped", file=sys.stderr)
     return 1 if skipped else 0
@@ -51,15 +55,18 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "convert",
-        help="trial results JSON to C3D and OpenSim TRC (markers, gait events)",
+        help="trial results JSON to C3D, OpenSim TRC and MOT (markers, gait events, knee)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Example:\n  gaitflow analyze sessions/S01 --out results/S01\n"
-        "  gaitflow convert results/S01/walk-01.json --to c3d,trc",
+        "  gaitflow convert results/S01/walk-01.json --to c3d,trc,mot",
     )
     p.add_argument("results", type=Path, nargs="+", help="trial results JSON file(s)")
     p.add_argument(
-        "--to", type=export_formats, default=FORMATS, help="c3d, trc or c3d,trc (default both)"
+        "--to",
+        type=export_formats,
+        default=FORMATS,
+        help="comma-separated: c3d, trc, mot (default all three)",
     )
     p.add_argument("--out", type=Path, help="folder for the files (default: beside each JSON)")
     p.add_argument(
