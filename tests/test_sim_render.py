@@ -192,3 +192,46 @@ def test_marker_behind_marker_is_z_buffered_and_flagged(flat_renderer: Renderer)
 def visible_both(out) -> bool:
     visible, _ = visibility(out.seen, out.in_view)
     return bool(visible.all())
+
+
+def test_static_reflector_saturates_in_an_empty_scene_and_hides_behind_the_body() -> None:
+    """A marker-like sphere fixed in the room: a saturated blob over a depth hole in every
+    frame, with or without a subject; the subject's arm in front of it hides it; never in
+    the truth arrays (``seen``)."""
+    base = dict(tilt_deg=0.0, pan_deg=0.0, roll_deg=0.0, walk_distance_mm=1000.0,
+                back_wall_mm=1500.0, stray_reflectors=False)  # fmt: skip
+    plain = Renderer(SimConfig(**base))
+    r = Renderer(SimConfig(**base, static_reflectors=((0.0, 2300.0, 700.0),)))  # 100 mm up
+    c_cam = r.to_cam(np.array([0.0, 2300.0, 700.0]))
+    uv = r.cam.project(c_cam[None])[0]
+    v, u = round(uv[1]), round(uv[0])
+    win = (slice(v - 6, v + 7), slice(u - 6, u + 7))
+    empty = r.render(None, np.random.default_rng(5))
+    assert empty.ir[win].max() == SAT and (empty.depth[win] == 0).sum() >= 4
+    assert plain.render(None, np.random.default_rng(5)).ir[win].max() < 20000
+    # a subject's marker elsewhere in the image: the reflector is still there, not in seen
+    marker = _pose(r.to_cam(np.array([600.0, 2300.0, 700.0])) @ r.R + r.C)
+    out = r.render(marker, np.random.default_rng(5))
+    assert out.ir[win].max() == SAT and out.seen.shape == (1,)
+    # ... and the same with a body box around it: the box starts from the scene without
+    # the reflector and puts it back (no double radiance, the same hole)
+    arm_far = FramePose(
+        marker.spheres,
+        (np.array([-120.0, 2200.0, 400.0]))[None],
+        (np.array([-120.0, 2200.0, 1000.0]))[None],
+        np.array([45.0]),
+        np.array([0.4]),
+    )
+    near_box = r.render(arm_far, np.random.default_rng(5))
+    assert near_box.ir[win].max() == SAT
+    np.testing.assert_array_equal(near_box.depth[win] == 0, empty.depth[win] == 0)
+    # an arm 100 mm in front of it hides it
+    arm = FramePose(
+        marker.spheres,
+        (np.array([0.0, 2200.0, 400.0]))[None],
+        (np.array([0.0, 2200.0, 1000.0]))[None],
+        np.array([45.0]),
+        np.array([0.4]),
+    )
+    hid = r.render(arm, np.random.default_rng(5))
+    assert hid.ir[win].max() < 20000 and (hid.depth[win] == 0).sum() == 0

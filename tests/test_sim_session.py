@@ -376,3 +376,21 @@ def test_overlapping_markers_are_flagged_merged(ses) -> None:
                 assert gt.merged[li] and gt.merged[ri], d
                 n_merged += 1
     assert n_merged > 0, n_both
+
+
+def test_reflectors_put_down_after_the_calibration() -> None:
+    """``strays_late``: the static reflectors are missing from the calibration recording
+    and present from the static pose on; ``strays`` has them throughout."""
+    from gaitflow.sim.variants import STRAYS, sim_config
+
+    floor_marker = STRAYS[3]  # on the floor, never hidden by the subject standing still
+    for name, in_calibration in (("strays", True), ("strays_late", False)):
+        s = simulate_session(TRIAL, seed=7, config=sim_config(name))
+        uv = s.renderer.cam.project(s.renderer.to_cam(np.array(floor_marker))[None])[0]
+        win = (slice(round(uv[1]) - 5, round(uv[1]) + 6), slice(round(uv[0]) - 5, round(uv[0]) + 6))
+        cal, _ = s.recordings["calibration"].frame(0)
+        static, _ = s.recordings["static"].frame(0)
+        assert bool(cal.ir[win].max() == SAT) == in_calibration
+        assert static.ir[win].max() == SAT and (static.depth[win] == 0).any()
+    with pytest.raises(ConfigError, match="reflectors_from"):
+        SimConfig(reflectors_from="walkway")

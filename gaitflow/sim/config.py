@@ -17,6 +17,9 @@ from gaitflow.errors import ConfigError
 WAND_MOUNTS = ("patch", "stick", "skin")
 
 
+RECORDING_KINDS = ("calibration", "static", "walk")  # in protocol order
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Simulator configuration.
@@ -68,6 +71,13 @@ class SimConfig:
     jitter_ms: float = 0.4
     # Scene.
     stray_reflectors: bool = True
+    # Marker-like retro-reflective spheres fixed in the scene (world centres, mm; the
+    # markers' diameter): a leftover floor marker, reflective tape on equipment or a sign.
+    # They saturate and cut depth holes like the body markers, and are never in the truth.
+    static_reflectors: tuple[tuple[float, float, float], ...] = ()
+    # The first recording in which they are there: "calibration" (the room has them), or
+    # "static" / "walk" (put down after the empty walkway was recorded).
+    reflectors_from: str = "calibration"
     # Subject.
     subject_id: str = "S01"
     arm_swing_gain: float = 0.7  # shoulder angle / contralateral thigh angle
@@ -101,6 +111,11 @@ class SimConfig:
         if self.wand_mount not in WAND_MOUNTS:
             raise ConfigError(
                 f"SimConfig.wand_mount={self.wand_mount!r} is not one of {', '.join(WAND_MOUNTS)}"
+            )
+        if self.reflectors_from not in RECORDING_KINDS:
+            raise ConfigError(
+                f"SimConfig.reflectors_from={self.reflectors_from!r} is not one of"
+                f" {', '.join(RECORDING_KINDS)}"
             )
         if self.n_walks < 1:
             raise ConfigError(f"SimConfig.n_walks={self.n_walks} must be >= 1")

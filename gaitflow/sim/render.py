@@ -261,14 +261,26 @@ class Renderer:
         r_m = z * self.rlen / 1000.0
         with np.errstate(invalid="ignore"):
             ir = cfg.ir_gain * albedo * self.bg_cos / np.maximum(r_m, 0.1) ** 2
-        self.bg_ir = np.where(np.isfinite(z), ir * self.vignette + extra, 0.0)
+        # the scene without its static reflector spheres: a frame's body box starts from it
+        # and z-buffers the spheres against the body (render)
+        self.bg_ir_base = np.where(np.isfinite(z), ir * self.vignette + extra, 0.0)
+        self.bg_cover = np.zeros((H, W))
+        self.bg_zmark = np.full((H, W), np.inf)
+        for c in cfg.static_reflectors:
+            centre = self.to_cam(np.asarray(c, dtype=float))[None]  # (1 instant, 3)
+            box = self._bbox(centre, cfg.marker_radius_mm, 1.5)
+            if box is not None and centre[0, 2] > 0:
+                self._sphere(centre, box, z, self.bg_cover, self.bg_zmark)
+        self.bg_ir = self._marker_radiance(self.bg_ir_base, self.bg_cover, self.bg_zmark)
         finite = np.isfinite(z)
         zf = np.where(finite, z, 0.0)
+        zf = self._marker_depth(zf, self.bg_cover, self.bg_zmark)
         theta = np.arccos(self.bg_cos)
         self.bg_zf = zf.astype(np.float32)
         sigma = cfg.depth_noise_scale * axial_sigma_mm(np.maximum(zf, 1.0), theta)
         self.bg_sigma = sigma.astype(np.float32)
-        self.bg_valid = (~self._invalid(finite, zf, theta, self.bg_ir)).astype(np.float32)
+        bad = self._invalid(finite, zf, theta, self.bg_ir) | (self.bg_cover >= cfg.hole_coverage)
+        self.bg_valid = (~bad).astype(np.float32)
         self.bg_edges = self._edge_pixels(zf)
         self.bg_ir32 = self.bg_ir.astype(np.float32)
         irsd = np.sqrt(cfg.ir_read_noise**2 + cfg.ir_shot_noise * self.bg_ir)
@@ -368,7 +380,7 @@ class Renderer:
             v0, u0 = box[0].start, box[1].start
             z = self.bg_z[box].copy()
             cosi = self.bg_cos[box].copy()
-            irb = self.bg_ir[box].copy()
+            irb = self.bg_ir_base[box].copy()
             a_c = self.to_cam(pose.cap_a)
             b_c = self.to_cam(pose.cap_b)
             cboxes = self._boxes(np.stack([a_c, b_c], axis=1), pose.cap_r, 2.0)
@@ -395,8 +407,11 @@ class Renderer:
                 z[loc] = np.where(take, zc, z[loc])
                 cosi[loc] = np.where(take, ci, cosi[loc])
                 irb[loc] = np.where(take, val, irb[loc])
-            cover = np.zeros(z.shape)
-            zmark = np.full(z.shape, np.inf)
+            # the static reflectors, except where the body is in front of them
+            zmark = self.bg_zmark[box].copy()
+            hidden = z < zmark
+            cover = np.where(hidden, 0.0, self.bg_cover[box])
+            zmark[hidden] = np.inf
             sph_c = self.to_cam(pose.spheres)  # (B, N, 3)
             # Mid-exposure: the middle sample, or the mean of the two middle ones (the
             # samples are symmetric about t_mid, so this is t_mid to first order).
@@ -436,15 +451,9 @@ class Renderer:
                 sb = (slice(bv0, bv1), slice(bu0, bu1))
                 others = sph_c[:, overlap[j]]
                 seen[j] = self._sphere(sph_c[:, j], sb, z, cover, zmark, (v0, u0), others)
-            hit = cover > 0
-            if hit.any():
-                rm = np.where(hit, zmark, 1.0) * self.rlen[box] / 1000.0
-                rad = cfg.marker_gain * SAT * (2.5 / np.maximum(rm, 0.1)) ** 2
-                irb = np.where(hit, cover * rad + (1.0 - cover) * irb, irb)
+            irb = self._marker_radiance(irb, cover, zmark, box)
             finite = np.isfinite(z)
-            zf = np.where(finite, z, 0.0)
-            mix = (cover > 0) & (cover < cfg.hole_coverage)
-            zf = np.where(mix, cover * np.where(mix, zmark, 0.0) + (1 - cover) * zf, zf)
+            zf = self._marker_depth(np.where(finite, z, 0.0), cover, zmark)
             theta = np.arccos(np.clip(cosi, 0.0, 1.0))
             sigma = cfg.depth_noise_scale * axial_sigma_mm(np.maximum(zf, 1.0), theta)
             db = zf + sigma * n_depth[box]
@@ -456,6 +465,31 @@ class Renderer:
         ir16 = np.clip(np.rint(ir), 0, SAT).astype(np.uint16)
         depth16 = np.clip(np.rint(depth), 0, SAT).astype(np.uint16)
         return RenderOut(ir16, depth16, seen, in_view)
+
+    def _marker_radiance(
+        self,
+        ir: np.ndarray,
+        cover: np.ndarray,
+        zmark: np.ndarray,
+        box: tuple[slice, slice] = (slice(None), slice(None)),
+    ) -> np.ndarray:
+        """IR with the marker spheres' coverage (``cover``, front depth ``zmark``) mixed in.
+
+        A retro-reflector returns ``marker_gain`` times saturation at 2.5 m, falling off with
+        the square of the distance; a pixel's value mixes it with what the rest shows.
+        """
+        hit = cover > 0
+        if not hit.any():
+            return ir
+        rm = np.where(hit, zmark, 1.0) * self.rlen[box] / 1000.0
+        rad = self.cfg.marker_gain * SAT * (2.5 / np.maximum(rm, 0.1)) ** 2
+        return np.where(hit, cover * rad + (1.0 - cover) * ir, ir)
+
+    def _marker_depth(self, zf: np.ndarray, cover: np.ndarray, zmark: np.ndarray) -> np.ndarray:
+        """Depth with the spheres' partly covered pixels mixing both surfaces (a pixel
+        covered by ``hole_coverage`` or more becomes a hole later, in ``_invalid``'s caller)."""
+        mix = (cover > 0) & (cover < self.cfg.hole_coverage)
+        return np.where(mix, cover * np.where(mix, zmark, 0.0) + (1 - cover) * zf, zf)
 
     def _invalid(
         self, finite: np.ndarray, zf: np.ndarray, theta: np.ndarray, ir: np.ndarray

@@ -24,7 +24,7 @@ from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 from gaitflow.schemas.raw import RawFrame
 from gaitflow.schemas.truth import GroundTruth
 from gaitflow.sim.body import build_body, knee_flexion, load_trial, scale_trial
-from gaitflow.sim.config import SimConfig
+from gaitflow.sim.config import RECORDING_KINDS, SimConfig
 from gaitflow.sim.render import Renderer
 from gaitflow.sim.truth import merged_flags, spatiotemporal, visibility
 from gaitflow.sim.walk import CalibrationMotion, StaticMotion, WalkMotion
@@ -89,7 +89,7 @@ class Recording:
         t = float(self.times.time_s[k])
         rng = np.random.default_rng([ses.seed, self.rec, index])
         pose = self.motion.pose(t, cfg.exposure_ms / 1000.0, cfg.blur_samples)
-        out = ses.renderer.render(pose, rng)
+        out = ses.renderer_for(self.kind).render(pose, rng)
         capture_ns = self.t0_ns + round(t * 1e9)
         raw = RawFrame(
             header=RawFrame.make_header(CAMERA_ID, self.name, index, capture_ns, last=last),
@@ -180,6 +180,19 @@ class SimSession:
     renderer: Renderer
     camera_json: dict[str, Any]
     recordings: dict[str, Recording] = field(default_factory=dict)
+    _bare: Renderer | None = field(default=None, repr=False)
+
+    def renderer_for(self, kind: str) -> Renderer:
+        """The renderer of a recording kind: without the static reflectors before the
+        recording they were put down in (``SimConfig.reflectors_from``)."""
+        cfg = self.config
+        if not cfg.static_reflectors or RECORDING_KINDS.index(kind) >= RECORDING_KINDS.index(
+            cfg.reflectors_from
+        ):
+            return self.renderer
+        if self._bare is None:
+            self._bare = Renderer(cfg.with_(static_reflectors=()), bank_seed=self.seed)
+        return self._bare
 
     def truth_summary(self, name: str) -> dict[str, Any]:
         """Trial-level ground truth of one recording (JSON-ready)."""

@@ -2,9 +2,10 @@
 
 The pipeline is judged on real trials recorded elsewhere, so the benchmarks run it on
 simulated sessions that change the *scene*, never a stage parameter: marker size (20-30 mm),
-camera distance, height and tilt, another camera unit's intrinsics, a noisier sensor, and a
-slow walker. ``gaitflow bench mocap --variants`` and ``gaitflow bench gait --variant`` take
-these names; :func:`sim_config` builds the quick-protocol configuration of one.
+camera distance, height and tilt, another camera unit's intrinsics, a noisier sensor, a
+slow walker, marker-like stray reflectors, and more. ``gaitflow bench mocap --variants``
+and ``gaitflow bench gait --variant`` take these names; :func:`sim_config` builds the
+quick-protocol configuration of one.
 
 Units as in :class:`gaitflow.sim.config.SimConfig`: mm, degrees.
 """
@@ -34,6 +35,18 @@ AZURE_NFOV = Camera(
     k2=-0.06,
     k3=0.0,
     model="azure-kinect-nfov",
+)
+
+# Marker-like reflectors fixed in the room (world mm: x along the walkway, y away from the
+# camera, z up; the default walking line is at y = 2750, the back wall at 4250): reflective
+# tape on the wall at hip, knee and shoulder height (sphere centres 14 mm off the wall), a
+# marker left on the floor 0.6 m behind the line, and one 0.5 m in front of it.
+STRAYS = (
+    (-600.0, 4236.0, 950.0),
+    (1300.0, 4236.0, 480.0),
+    (2000.0, 4236.0, 1400.0),
+    (400.0, 3350.0, 13.5),
+    (-1100.0, 2250.0, 13.5),
 )
 
 VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
@@ -88,6 +101,17 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         {"wand_mount": "patch"},
         "the default before 27 Nov: a skin patch floating under each of the source lab's"
         " thigh and tibia wands",
+    ),
+    "strays": (
+        {"static_reflectors": STRAYS},
+        "five marker-like reflectors fixed in the room, saturating like the markers: on the"
+        " back wall at hip, knee and shoulder height, a marker left on the floor 0.6 m"
+        " behind the walking line and one 0.5 m in front of it",
+    ),
+    "strays_late": (
+        {"static_reflectors": STRAYS, "reflectors_from": "static"},
+        "the same five reflectors put down after the empty walkway was recorded: the"
+        " calibration has not seen them, the static pose and the walks have",
     ),
     "inview": (
         {"walk_margin_mm": -400.0},
