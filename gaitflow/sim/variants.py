@@ -71,6 +71,11 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "twice the depth noise, three times the IR read noise, more flying pixels",
     ),
     "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
+    "veryslow": (
+        {"speed_factor": 0.35},
+        "the trial played at 0.35x speed (about 0.4 m/s: a frail or post-stroke walker's"
+        " speed)",
+    ),
     "skew": (
         {"pan_deg": 6.0, "roll_deg": 3.0},
         "camera turned 6 deg along the walkway and rolled 3 deg (a tripod set up by hand)",
