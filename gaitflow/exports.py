@@ -1,4 +1,4 @@
-"""Trial results in the formats of researchers' tools: C3D, OpenSim's TRC and MOT.
+"""Trial results in the formats of researchers' tools: C3D, OpenSim's TRC and MOT, CSV.
 
 A results document (``../shared/spec/results.md``) holds the labelled markers per camera
 frame and the gait events. :func:`trial_arrays` turns it into arrays on the camera's frame
@@ -36,6 +36,10 @@ Formats:
   grid), time from the first frame, columns ``knee_flexion_l`` and ``knee_flexion_r``
   (flexion positive, 0 = straight: the results' definition, not an OpenSim model's
   coordinate, whose sign differs between models); ``NaN`` where the results have none.
+- CSV (spreadsheets, R, pandas): the gait cycles, one row per heel strike (the results'
+  ``cycles``): pass number and direction, side, the strike, toe off and next strike times
+  (s from the first frame), step and stride length (mm), stance and swing (s); an empty
+  cell where a figure was not measured.
 """
 
 from __future__ import annotations
@@ -290,7 +294,39 @@ def mot_text(arr: TrialArrays, name: str) -> str:
     return "\n".join([*head, *rows]) + "\n"
 
 
-FORMATS = ("c3d", "trc", "mot")
+CYCLE_COLUMNS = ("heel_strike_s", "toe_off_s", "next_heel_strike_s", "step_length_mm",
+                 "stride_length_mm", "stance_s", "swing_s")  # fmt: skip
+CYCLE_TIMES = ("heel_strike_s", "toe_off_s", "next_heel_strike_s")
+
+
+def cycles_csv(doc: Mapping[str, Any]) -> str:
+    """The results' gait cycles as CSV, one row per heel strike (header only without any).
+
+    Columns: ``pass`` (1-based, the pass whose time span holds the strike; empty if none),
+    ``direction`` (+1 toward the walkway's end, -1 back), ``side``, then
+    :data:`CYCLE_COLUMNS`; times in s from the first frame.
+    """
+    import csv
+
+    frames = doc.get("frames") or []
+    t0 = float(frames[0]["time_s"]) if frames else 0.0
+    passes = doc.get("passes") or []
+    buf = io.StringIO()
+    out = csv.writer(buf, lineterminator="\n")
+    out.writerow(["pass", "direction", "side", *CYCLE_COLUMNS])
+    for c in doc.get("cycles") or []:
+        hs = float(c["heel_strike_s"])
+        k = next((i for i, p in enumerate(passes) if p["start_s"] <= hs <= p["end_s"]), None)
+        cells = []
+        for key in CYCLE_COLUMNS:
+            v = c.get(key)
+            cells.append("" if v is None else str(round(v - t0 if key in CYCLE_TIMES else v, 4)))
+        where = ["", ""] if k is None else [k + 1, passes[k]["direction"]]
+        out.writerow([*where, c["side"], *cells])
+    return buf.getvalue()
+
+
+FORMATS = ("c3d", "trc", "mot", "csv")
 
 
 def export_formats(text: str) -> tuple[str, ...]:
@@ -312,7 +348,8 @@ def write_exports(
     frame: str = "auto",
     source: object = "results",
 ) -> tuple[list[Path], str]:
-    """Write ``folder/<stem>.c3d``, ``.trc`` and/or ``.mot`` of a validated results document.
+    """Write ``folder/<stem>.c3d``, ``.trc``, ``.mot`` and/or ``.csv`` of a validated results
+    document.
 
     ``frame`` "auto" is the lab frame where the document carries the walkway, else the
     camera's. Returns (paths written, frame used); :class:`InputError` naming ``source``
@@ -329,6 +366,8 @@ def write_exports(
             data[fmt] = trc_text(arr, f"{stem}.trc", frame).encode()
         elif fmt == "mot":
             data[fmt] = mot_text(arr, f"{stem}.mot").encode()
+        elif fmt == "csv":
+            data[fmt] = cycles_csv(doc).encode()
         else:
             raise InputError(fmt, f"unknown export format: use {FORMATS}")
     folder.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,7 @@ import pytest
 from gaitflow.cli import main
 from gaitflow.commands.analyze import NO_SUMMARY, analyze_session
 from gaitflow.errors import InputError
-from gaitflow.exports import mot_text, trc_text, trial_arrays
+from gaitflow.exports import cycles_csv, mot_text, trc_text, trial_arrays
 from gaitflow.results import validation_errors
 from gaitflow.session import SessionWriter
 from gaitflow.sim import SimConfig, simulate_session
@@ -92,9 +92,9 @@ def test_analyze_files_a_session_in_the_patient_store(
     subject = json.loads((tiny_session / "camera.json").read_text())["subject"]["id"]
     store = tmp_path / "clinic"
     argv = ["analyze", str(tiny_session), "--store", str(store), "--inline", "-q"]
-    assert main([*argv, "--date", "2026-11-21", "--export", "c3d,trc,mot"]) == 0
+    assert main([*argv, "--date", "2026-11-21", "--export", "c3d,trc,mot,csv"]) == 0
     folder = store / subject / "S01"
-    # --export: the walk as C3D, TRC and MOT beside its JSON, in the walkway's lab frame
+    # --export: the walk as C3D, TRC, MOT and CSV beside its JSON, in the walkway's lab frame
     walk_doc = json.loads((folder / "walk-01.json").read_text())
     trc = (folder / "walk-01.trc").read_text()
     assert trc == trc_text(trial_arrays(walk_doc), "walk-01.trc", "lab")
@@ -102,6 +102,9 @@ def test_analyze_files_a_session_in_the_patient_store(
     mot = (folder / "walk-01.mot").read_text()
     assert mot == mot_text(trial_arrays(walk_doc), "walk-01.mot")
     assert int(mot.split("\n")[2].removeprefix("nRows=")) > 100  # the 100 Hz knee
+    csv_text = (folder / "walk-01.csv").read_text()
+    assert csv_text == cycles_csv(walk_doc)
+    assert len(csv_text.splitlines()) == 1 + len(walk_doc.get("cycles", []))
     # walk-02, nobody in view: its frames with every marker unseen
     rows = (folder / "walk-02.trc").read_text().split("\n")[6:-1]
     assert len(rows) == 20 and all(r.split("\t")[2:] == [""] * 60 for r in rows)

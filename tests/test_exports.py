@@ -1,4 +1,4 @@
-"""Trial results as C3D, OpenSim TRC and MOT (``gaitflow.exports``, ``gaitflow convert``)."""
+"""Trial results as C3D, OpenSim TRC and MOT, and CSV (``gaitflow.exports``, ``convert``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from gaitflow.cli import main
 from gaitflow.errors import InputError
-from gaitflow.exports import c3d_bytes, mot_text, trc_text, trial_arrays
+from gaitflow.exports import c3d_bytes, cycles_csv, mot_text, trc_text, trial_arrays
 from gaitflow.markers import MARKER_INDEX
 from gaitflow.results import build_results, write_results
 
@@ -143,6 +143,29 @@ def test_mot_holds_the_knee_on_the_results_time_base_from_the_first_frame() -> N
     assert np.isnan(rows[4:, 2]).all() and lines[11].endswith("\tNaN")
 
 
+def test_csv_holds_one_row_per_heel_strike_with_its_pass() -> None:
+    doc = _doc()
+    for f in doc["frames"]:
+        f["time_s"] += 5.0  # times in the file are from the first frame
+    doc["passes"] = [{"direction": 1, "start_s": 5.0, "end_s": 6.0},
+                     {"direction": -1, "start_s": 8.0, "end_s": 9.0}]  # fmt: skip
+    doc["cycles"] = [
+        {"side": "L", "heel_strike_s": 5.25, "toe_off_s": 5.9, "next_heel_strike_s": 6.3,
+         "step_length_mm": 612.5, "stride_length_mm": 1250.25, "stance_s": 0.65},
+        {"side": "R", "heel_strike_s": 8.5},
+        {"side": "R", "heel_strike_s": 7.0, "step_length_mm": 600.0},  # in no pass
+    ]  # fmt: skip
+    rows = cycles_csv(doc).split("\n")
+    assert rows[0] == ("pass,direction,side,heel_strike_s,toe_off_s,next_heel_strike_s,"
+                       "step_length_mm,stride_length_mm,stance_s,swing_s")  # fmt: skip
+    assert rows[1] == "1,1,L,0.25,0.9,1.3,612.5,1250.25,0.65,"
+    assert rows[2] == "2,-1,R,3.5,,,,,,"
+    assert rows[3] == ",,R,2.0,,,600.0,,,"
+    assert rows[4:] == [""]
+    # results without cycles: the header alone
+    assert cycles_csv(_doc()) == rows[0] + "\n"
+
+
 def test_convert_writes_all_and_names_a_bad_file_without_stopping(tmp_path, capsys) -> None:
     good = write_results(_doc(), tmp_path / "walk-01.json")
     bad = tmp_path / "walk-02.json"
@@ -151,7 +174,8 @@ def test_convert_writes_all_and_names_a_bad_file_without_stopping(tmp_path, caps
     assert main(["convert", str(bad), str(good), "--out", str(out)]) == 1
     err = capsys.readouterr().err
     assert "walk-02.json" in err and "1 file(s) skipped" in err
-    assert sorted(p.name for p in out.iterdir()) == ["walk-01.c3d", "walk-01.mot", "walk-01.trc"]
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["walk-01.c3d", "walk-01.csv", "walk-01.mot", "walk-01.trc"]
     assert (out / "walk-01.trc").read_text() == trc_text(trial_arrays(_doc()), "walk-01.trc")
     # results without the calibration's walkway: camera space (auto)
     old = write_results(_doc(walkway=False), tmp_path / "old" / "walk-03.json")

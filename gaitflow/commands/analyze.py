@@ -25,8 +25,8 @@ subject being camera.json's ``subject.id`` (or ``--subject``) and the visit's da
 SUBJECT`` then shows the subject's figures over the visits. Analysing a session again
 replaces its folder's results.
 
-``--export c3d,trc,mot`` also writes each trial as C3D, OpenSim TRC (markers) and MOT (knee
-flexion) beside its JSON
+``--export c3d,trc,mot,csv`` also writes each trial as C3D, OpenSim TRC (markers) and MOT
+(knee flexion), and a CSV of its gait cycles, beside its JSON
 (``gaitflow.exports``, as ``gaitflow convert``); a trial with no frame to export is named in
 a warning.
 """
@@ -387,8 +387,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--export",
         type=export_formats,
-        metavar="c3d,trc,mot",
-        help="also write each trial as C3D, OpenSim TRC and/or MOT (as gaitflow convert)",
+        metavar="c3d,trc,mot,csv",
+        help="also write each trial as C3D, OpenSim TRC / MOT and/or CSV (as gaitflow convert)",
     )
     p.add_argument(
         "--param",

@@ -1,13 +1,13 @@
-"""``gaitflow convert RESULTS.json... --to c3d,trc,mot``: trial results for researchers' tools.
+"""``gaitflow convert RESULTS.json... --to c3d,trc,mot,csv``: results for researchers' tools.
 
 Each trial results JSON that ``gaitflow analyze`` wrote (``../shared/spec/results.md``)
 becomes a C3D file (markers, gait events and knee angles: Vicon Nexus, Visual3D, Mokka,
-ezc3d, btk), an OpenSim TRC marker file and an OpenSim MOT of the knee flexion, beside it
-or in ``--out`` (``gaitflow.exports``). Markers are
-in the lab frame (X along the calibrated walkway, Z up in the C3D, Y up in the TRC) where
-the results carry the calibration's walkway, else in camera space (``--frame``). A file
-that is not a valid results document is named on stderr, counted and skipped; the others
-are converted (exit 1 if any was skipped).
+ezc3d, btk), an OpenSim TRC marker file, an OpenSim MOT of the knee flexion and a CSV of
+the gait cycles (spreadsheets, R, pandas), beside it or in ``--out`` (``gaitflow.exports``).
+Markers are in the lab frame (X along the calibrated walkway, Z up in the C3D, Y up in the
+TRC) where the results carry the calibration's walkway, else in camera space (``--frame``).
+A file that is not a valid results document is named on stderr, counted and skipped; the
+others are converted (exit 1 if any was skipped).
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
         for p in paths:
             if p.suffix == ".mot":
                 print(f"{p}: knee flexion, {len(doc['knee_flexion_deg']['time_s'])} samples")
+            elif p.suffix == ".csv":
+                print(f"{p}: gait cycles, {len(doc.get('cycles') or [])} rows")
             else:
                 print(f"{p}: {n} frames, {events} events, {frame} frame")
     if skipped:
@@ -55,18 +57,18 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "convert",
-        help="trial results JSON to C3D, OpenSim TRC and MOT (markers, gait events, knee)",
+        help="trial results JSON to C3D, OpenSim TRC / MOT and CSV (markers, events, knee, cycles)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Example:\n  gaitflow analyze sessions/S01 --out results/S01\n"
-        "  gaitflow convert results/S01/walk-01.json --to c3d,trc,mot",
+        "  gaitflow convert results/S01/walk-01.json --to c3d,csv",
     )
     p.add_argument("results", type=Path, nargs="+", help="trial results JSON file(s)")
     p.add_argument(
         "--to",
         type=export_formats,
         default=FORMATS,
-        help="comma-separated: c3d, trc, mot (default all three)",
+        help="comma-separated: c3d, trc, mot, csv (default all four)",
     )
     p.add_argument("--out", type=Path, help="folder for the files (default: beside each JSON)")
     p.add_argument(

@@ -73,8 +73,7 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
     "slow": ({"speed_factor": 0.6}, "the trial played at 0.6x speed (a slow walker)"),
     "veryslow": (
         {"speed_factor": 0.35},
-        "the trial played at 0.35x speed (about 0.4 m/s: a frail or post-stroke walker's"
-        " speed)",
+        "the trial played at 0.35x speed (about 0.4 m/s: a frail or post-stroke walker's speed)",
     ),
     "skew": (
         {"pan_deg": 6.0, "roll_deg": 3.0},
