@@ -44,6 +44,7 @@ Formats:
 
 from __future__ import annotations
 
+import csv
 import io
 import warnings
 from collections.abc import Mapping
@@ -306,8 +307,6 @@ def cycles_csv(doc: Mapping[str, Any]) -> str:
     ``direction`` (+1 toward the walkway's end, -1 back), ``side``, then
     :data:`CYCLE_COLUMNS`; times in s from the first frame.
     """
-    import csv
-
     frames = doc.get("frames") or []
     t0 = float(frames[0]["time_s"]) if frames else 0.0
     passes = doc.get("passes") or []
