@@ -160,13 +160,11 @@ def _preview_picks(name: str, rec: Any, max_frames: int | None) -> set[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from gaitflow.sim.session import simulate_session
     from gaitflow.sim.variants import sim_config
 
     # the benches' named set-ups (camera, distance, markers, subject), as session folders
-    cfg = dataclasses.replace(sim_config(args.variant, quick=args.quick), n_walks=args.walks)
+    cfg = sim_config(args.variant, quick=args.quick).with_(n_walks=args.walks)
     ses = simulate_session(args.trial, seed=args.seed, config=cfg)
     preview = None
     if args.preview:

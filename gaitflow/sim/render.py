@@ -407,11 +407,15 @@ class Renderer:
                 z[loc] = np.where(take, zc, z[loc])
                 cosi[loc] = np.where(take, ci, cosi[loc])
                 irb[loc] = np.where(take, val, irb[loc])
-            # the static reflectors, except where the body is in front of them
-            zmark = self.bg_zmark[box].copy()
-            hidden = z < zmark
-            cover = np.where(hidden, 0.0, self.bg_cover[box])
-            zmark[hidden] = np.inf
+            if cfg.static_reflectors:
+                # the static reflectors, except where the body is in front of them
+                zmark = self.bg_zmark[box].copy()
+                hidden = z < zmark
+                cover = np.where(hidden, 0.0, self.bg_cover[box])
+                zmark[hidden] = np.inf
+            else:
+                zmark = np.full(z.shape, np.inf)
+                cover = np.zeros(z.shape)
             sph_c = self.to_cam(pose.spheres)  # (B, N, 3)
             # Mid-exposure: the middle sample, or the mean of the two middle ones (the
             # samples are symmetric about t_mid, so this is t_mid to first order).
