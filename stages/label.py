@@ -1654,27 +1654,46 @@ LAYER_MAX_AGE = 3  # frames: an older last depth is not trusted
 # the wrong reference: seed 0 knee 1.37 / 1.92 deg against 1.26 / 2.09 without it, on
 # the simulator's old patch mount).
 LAYER_REF = {"ANK": "TIB"}
+# A hip without a last depth of its own (hidden behind the swinging arm for more than
+# LAYER_MAX_AGE frames) has its layer judged against the near shoulder's instead, in the
+# floor frame (a tilted camera makes the shoulder-to-hip drop a depth difference), at the
+# static pose's depth offset between them. The shoulder is a poorer reference than the
+# hip's own last depth: on three cached set-ups (base, ``high``, ``veryslow``; 3354 views)
+# the hip's true depth lay from it 15 mm at the median but 85 mm at the 90th percentile.
+# So the other layer must be nearer the reference by LAYER_FALLBACK_GAIN_MM, more than that
+# spread: a far leg or pelvis layer well behind still gives way (on base and ``far``, seven
+# hips published 90-175 mm too deep after such a gap moved to within 5 mm of the truth; no
+# other set-up changed), and an arm less than that gain in front of the hip can never take
+# over, whatever the reference's error.
+LAYER_FALLBACK = {"HIP": "SHO"}
+LAYER_FALLBACK_GAIN_MM = 100.0
+FALLBACK_LAYERED = np.array(
+    [MARKER_INDEX[f"{side}_{site}"] for side in "LR" for site in LAYER_FALLBACK]
+)
 
 
 def layer_reference(geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """(20,) reference marker per marker for the leg layer (-1 = none) and (20,) its
     expected depth offset (mm): the static pose's depth of the marker minus its reference's
-    (near-side offsets, used for whichever side faces the camera)."""
+    (near-side offsets, used for whichever side faces the camera). ``LAYER_REF`` and
+    ``LAYER_FALLBACK`` pairs both."""
     ref = np.full(20, -1)
     off = np.zeros(20)
     for side in "LR":
-        for site, r_site in LAYER_REF.items():
+        for site, r_site in (LAYER_REF | LAYER_FALLBACK).items():
             k = MARKER_INDEX[f"{side}_{site}"]
             ref[k] = MARKER_INDEX[f"{side}_{r_site}"]
             off[k] = geo.rel_sho("near", site)[1] - geo.rel_sho("near", r_site)[1]
     return ref, off
 
 
-def _layer_continues(own: np.ndarray, alt: np.ndarray, last: np.ndarray) -> np.ndarray:
+def _layer_continues(
+    own: np.ndarray, alt: np.ndarray, last: np.ndarray, gain: float = LAYER_GAIN_MM
+) -> np.ndarray:
     """Where another mode's depth (``alt``) continues the last one better than the own
-    mode's by ``LAYER_GAIN_MM`` (same-shape arrays of depths, mm; NaN anywhere = no)."""
+    mode's by ``gain`` (same-shape arrays of depths, mm; NaN anywhere = no)."""
     with np.errstate(invalid="ignore"):
-        return np.abs(alt - last) + LAYER_GAIN_MM < np.abs(own - last)
+        return np.abs(alt - last) + gain < np.abs(own - last)
 
 
 def fill_modes(pos: np.ndarray) -> np.ndarray:
@@ -1721,6 +1740,7 @@ def _output(
     prev: tuple[np.ndarray, np.ndarray] | None = None,
     side_on: np.ndarray | None = None,
     ref: tuple[np.ndarray, np.ndarray] | None = None,
+    ff: FloorFrame | None = None,
 ) -> tuple[LabelledMarkers, tuple[np.ndarray, np.ndarray]]:
     """The labelled frame, and the (20,) depth and frame of each marker's last position.
 
@@ -1739,7 +1759,9 @@ def _output(
     seen in the frame instead (``LAYER_REF``: the ankle against the tibia wand, at the
     static pose's depth offset), and against the last depth only without one:
     a track that starts on the layer in front (a tibia wand, an arm) would otherwise keep
-    it for whole strides.
+    it for whole strides. A hip's pair (``LAYER_FALLBACK``, the near shoulder) is used only
+    without a last depth of its own, in the floor frame ``ff`` (needed for it) and by
+    ``LAYER_FALLBACK_GAIN_MM``.
     """
     pos = fill_modes(np.asarray(mk.position, dtype=np.float64).reshape(-1, 3, 3))
     cen = np.asarray(mk.centroid, dtype=np.float64).reshape(-1, 2)
@@ -1755,15 +1777,23 @@ def _output(
             bk = assign[k]
             if bk < 0:
                 continue
-            if ref is not None and ref[0][k] >= 0 and assign[ref[0][k]] >= 0:
-                r = ref[0][k]
+            own, alt = OWN_MODE[k], ALT_MODE[k]
+            r = -1 if ref is None else int(ref[0][k])
+            r_seen = r >= 0 and assign[r] >= 0
+            fallback = k in FALLBACK_LAYERED
+            if r_seen and not fallback:
                 last = pos[assign[r], OWN_MODE[r], 2] + ref[1][k]
             elif np.isfinite(zp[k]) and frame - seen[k] <= LAYER_MAX_AGE:
                 last = zp[k]
+            elif r_seen and ff is not None:
+                e = ff.to_floor(pos[bk, [own, alt]])[:, 1]
+                e_ref = ff.to_floor(pos[assign[r], OWN_MODE[r]])[1] + ref[1][k]
+                if _layer_continues(e[0], e[1], e_ref, LAYER_FALLBACK_GAIN_MM):
+                    mode[k] = alt
+                continue
             else:
                 continue
-            alt = ALT_MODE[k]
-            if _layer_continues(pos[bk, OWN_MODE[k], 2], pos[bk, alt, 2], last):
+            if _layer_continues(pos[bk, own, 2], pos[bk, alt, 2], last):
                 mode[k] = alt
     position[ii] = pos[b, mode[ii]]
     if side_on is not None:
@@ -1835,7 +1865,7 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     track = p["leg_layer"] == "track"
     side_on = HEELS if p["heel_side_on"] else None
     out, leg_depth = _output(
-        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_ref
+        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_ref, ff
     )
     return replace(st, leg_depth=leg_depth if track else None), [out]
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from gaitflow.schemas import Markers3D
 from gaitflow.stages import label
+from gaitflow.stages.model import FloorFrame
 
 from gaitflow.markers import MARKER_INDEX
 
@@ -75,6 +76,67 @@ def test_a_hip_takes_the_normal_layer_where_its_bottom_one_is_the_body_behind_it
     assert out.position[HIP, 2] == 2728.0
 
 
+def test_a_hip_back_from_a_gap_is_judged_against_the_shoulder_in_the_floor_frame() -> None:
+    # The hip, hidden for a while, reappears at the body's rear edge: its bottom layer is
+    # the far leg 150 mm behind. Without a last depth of its own the near shoulder (blob 1,
+    # 40 mm nearer the camera in the static pose) is the reference, and by floor depth: the
+    # camera, tilted 10 deg down, sees the shoulder 500 mm above the hip.
+    SHO = MARKER_INDEX["L_SHO"]
+    tilt = np.radians(10.0)
+    # floor axes in camera coordinates: along X; away from the camera and up, tilted
+    rot = np.array(
+        [[1.0, 0.0, 0.0], [0.0, np.sin(tilt), np.cos(tilt)], [0.0, -np.cos(tilt), np.sin(tilt)]]
+    )
+    ff = FloorFrame(rot=rot, origin=np.array([0.0, 800.0, 0.0]))
+    hip_floor = np.array([1000.0, 2600.0, 900.0])
+    sho_floor = hip_floor + np.array([0.0, -40.0, 500.0])
+    ray = ff.to_camera(hip_floor)
+    sho = ff.to_camera(sho_floor)
+
+    def along(mm: float) -> np.ndarray:  # the point ``mm`` behind the hip on its ray
+        return ray * (1.0 + mm / np.linalg.norm(ray))
+
+    def frame(normal: np.ndarray, bottom: np.ndarray, shoulder: np.ndarray) -> Markers3D:
+        pos = np.zeros((2, 3, 3))
+        pos[0, :2], pos[0, 2], pos[1, :] = normal, bottom, shoulder
+        return Markers3D(
+            header=Markers3D.make_header("c", "walk-01", 9, 9),
+            centroid=np.array([[300.0, 200.0], [300.0, 120.0]]),
+            marker_radius=np.full(2, 2.0),
+            region_radius=np.full(2, 4.0),
+            depth=pos[:, :, 2].copy(),
+            position=pos,
+        )
+
+    a = np.full(20, -1)
+    a[HIP], a[SHO] = 0, 1
+    ref, off = np.full(20, -1), np.zeros(20)
+    ref[HIP], off[HIP] = SHO, 40.0
+    unseen = (np.full(20, np.nan), np.full(20, -(10**9)))
+    leg = frame(ray, along(150.0), sho)
+    out, _ = label._output(leg, a, 1, "L", unseen, None, (ref, off), ff)
+    np.testing.assert_allclose(out.position[HIP], ray)
+    # not without the floor frame, nor without the shoulder in the frame
+    out, _ = label._output(leg, a, 1, "L", unseen, None, (ref, off))
+    np.testing.assert_allclose(out.position[HIP], along(150.0))
+    no_sho = a.copy()
+    no_sho[SHO] = -1
+    out, _ = label._output(leg, no_sho, 1, "L", unseen, None, (ref, off), ff)
+    np.testing.assert_allclose(out.position[HIP], along(150.0))
+    # a layer 80 mm behind is within the shoulder's spread: the own (bottom) mode stands
+    out, _ = label._output(frame(ray, along(80.0), sho), a, 1, "L", unseen, None, (ref, off), ff)
+    np.testing.assert_allclose(out.position[HIP], along(80.0))
+    # an arm 90 mm in front (the normal layer) never takes over, even with the shoulder
+    # 80 mm nearer than its offset says
+    arm = frame(along(-90.0), ray, ff.to_camera(sho_floor - np.array([0.0, 80.0, 0.0])))
+    out, _ = label._output(arm, a, 1, "L", unseen, None, (ref, off), ff)
+    np.testing.assert_allclose(out.position[HIP], ray)
+    # a last depth of its own comes first: here it says the far layer
+    own = (np.full(20, along(150.0)[2]), np.full(20, 8))
+    out, _ = label._output(leg, a, 1, "L", own, None, (ref, off), ff)
+    np.testing.assert_allclose(out.position[HIP], along(150.0))
+
+
 def test_without_a_recent_depth_the_own_mode_stands() -> None:
     # no previous depth (None), or one too old: the knee keeps its own (normal) mode
     out, _ = label._output(_markers(1, 2520.0, 2612.0), _assign(), 1, "L", None)
@@ -123,7 +185,12 @@ def test_layer_references_pair_each_side_within_its_segment() -> None:
             assert ref[k] == MARKER_INDEX[f"{side}_{r_site}"]
             want = geo.rel_sho("near", site)[1] - geo.rel_sho("near", r_site)[1]
             assert off[k] == pytest.approx(want)
-    assert (ref >= 0).sum() == 2 * len(label.LAYER_REF)
+    for side in "LR":
+        k = MARKER_INDEX[f"{side}_HIP"]
+        assert ref[k] == MARKER_INDEX[f"{side}_SHO"]
+        want = geo.rel_sho("near", "HIP")[1] - geo.rel_sho("near", "SHO")[1]
+        assert off[k] == pytest.approx(want)
+    assert (ref >= 0).sum() == 2 * len(label.LAYER_REF | label.LAYER_FALLBACK)
     # The knee has none: the thigh wand's depth is the limb, the other leg or the wall
     # behind the stick, not a depth the knee's layer can be judged against.
     assert ref[MARKER_INDEX["L_KNE"]] == ref[MARKER_INDEX["R_KNE"]] == -1
