@@ -16,12 +16,20 @@ from gaitflow.markers import MARKER_INDEX
 HIP = MARKER_INDEX["R_HIP"]
 
 
-def _pelvis(blobs: np.ndarray, still: np.ndarray | None = None) -> np.ndarray:
-    """Run the pelvis search (near side R) on blobs (N, 3); return the (20,) assignment."""
+def _pelvis(
+    blobs: np.ndarray, still: np.ndarray | None = None, bob: float = 0.0, hip_age: int = 0
+) -> np.ndarray:
+    """Run the pelvis search (near side R) on blobs (N, 3), the shoulder track ``bob`` mm
+    above its standing height, the hip tracked at its standing place ``hip_age`` frames
+    ago (0: untracked); return the (20,) assignment."""
     geo = label.Geometry.from_model(None)
-    sho = np.array([0.0, 0.0, geo.sho_h])
+    sho = np.array([0.0, 0.0, geo.sho_h + bob])
     st = label.init(label.PARAMS.resolve({}))
     pred, sig, tracked = label._predictions(st, geo, sho, "R", 1, 10)
+    if hip_age:
+        # as _predictions grows a track's sigma with the frames unseen
+        s = 30.0 + 20.0 * hip_age
+        sig[HIP], tracked[HIP] = [s, s + 20.0, s], True
     qm = np.repeat(np.asarray(blobs, float)[:, None, :], 3, axis=1)
     fr = label._Frame(
         qm,
@@ -55,6 +63,20 @@ def test_hidden_hip_does_not_take_the_near_asi(df: float, dh: float) -> None:
     # stage before this rule named the near ASI blob R_HIP).
     blobs = np.array([_standing("R_PSI"), _standing("R_ASI", df, dh), _standing("L_ASI")])
     assert _pelvis(blobs)[HIP] == -1
+
+
+@pytest.mark.parametrize("bob", [-40.0, 0.0, 30.0])
+def test_hip_stays_below_where_the_spines_are_expected(bob: float) -> None:
+    # No spine labelled, the hip hidden for three frames (its track's sigma grown to 90
+    # mm): a blob in the band is the hip only below the spines' expected height, which
+    # rises and falls with the shoulder track. The hip at any phase of the bob is labelled;
+    # a blob 80 mm above it is not (the template's spines stand 70-100 mm above the hip;
+    # the bob is known, so with the shoulder 40 mm low such a blob, only 40 mm above the
+    # hip's standing height, was taken before the rule).
+    hip = _standing("R_HIP", 10.0, bob)
+    assert _pelvis(np.array([hip]), bob=bob, hip_age=3)[HIP] == 0
+    high = hip + np.array([0.0, 0.0, 80.0])
+    assert _pelvis(np.array([high]), bob=bob, hip_age=3)[HIP] == -1
 
 
 def test_visible_hip_still_labelled() -> None:
