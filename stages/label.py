@@ -1182,7 +1182,8 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     Every assignment of the pelvis-band blobs to near (PSI, HIP, ASI) and far ASI is scored
     by the tracks (or the loose standing offsets from the shoulder: the trunk leans while
     walking), the rigid distances among them, the hard order PSI < HIP < ASI along the
-    walking direction with HIP below PSI and ASI, and the far ASI deeper than the near one.
+    walking direction with HIP below PSI and ASI (those labelled, and where the shoulder
+    track puts them), and the far ASI deeper than the near one.
     The far PSI sits ~60 mm behind the near one, closer than the depth error of a marker
     on the silhouette: it is not labelled. Labels another blob would fit about as well
     are left out.
@@ -1224,11 +1225,8 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     # HIP_DROP of its standing drop below each ASI and PSI, near or far (pelvic obliquity and
     # tilt while walking change the drop by a few cm). Without the far ones, a hidden hip's
     # label took the near ASI whenever the near ASI slot stayed empty.
-    drop = HIP_DROP * max(
-        float(np.mean([geo.rel_sho("near", s)[2] for s in ("ASI", "PSI")]))
-        - geo.rel_sho("near", "HIP")[2],
-        0.0,
-    )
+    spines = float(np.mean([geo.rel_sho("near", s)[2] for s in ("ASI", "PSI")]))
+    drop = HIP_DROP * max(spines - geo.rel_sho("near", "HIP")[2], 0.0)
     for a in (0, 2, 3, 4):
         hy.forbid((a, 1), lambda pa, ph: ph[:, 2] < pa[:, 2] - drop)
     # The same against where the spines are expected, for when none is labelled: their
@@ -1237,7 +1235,6 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     # spread 4-41 mm over twelve walks) against its 57-169 mm below the spines; without
     # this, a hip hidden behind the arm took the near ASI's half-hidden blob, the commonest
     # wrong label left.
-    spines = float(np.mean([geo.rel_sho("near", s)[2] for s in ("ASI", "PSI")]))
     top = sho[2] - H + spines - drop
     hy.forbid((1,), lambda ph: ph[:, 2] <= top)
     # Near and far ASI both seen: the near one is the nearer (a relative test survives the
