@@ -15,12 +15,14 @@ from gaitflow.sim.body import (
     SEGMENT_NAMES,
     WAND_RADIUS_MM,
     build_body,
+    crouch_trial,
     derive_markers,
     load_trial,
     pelvis_frame,
     scale_trial,
     trials_dir,
 )
+from gaitflow.sim.body import knee_flexion as sim_knee_flexion
 from gaitflow.sim.config import SimConfig
 from gaitflow.sim.walk import _period
 
@@ -50,6 +52,30 @@ def test_a_scaled_trial_is_a_smaller_subject_walking_the_same_gait() -> None:
     assert h[1] == pytest.approx(0.64 * h[0], rel=0.02)
     with pytest.raises(ConfigError, match="body_scale"):
         SimConfig(body_scale=0.3)
+
+
+def test_a_crouched_trial_keeps_the_feet_and_the_leg_lengths_and_bends_the_knees() -> None:
+    src = load_trial("c3dorg_s00_vicon_CGM24")
+    crouch = crouch_trial(src, 30.0)
+    assert crouch_trial(src, 0.0) is src
+    for name in ("L_ANK", "L_HEE", "R_TOE"):
+        np.testing.assert_array_equal(crouch.markers[name], src.markers[name])
+    for name in ("L_ASI", "R_PSI"):
+        np.testing.assert_allclose(crouch.markers[name], src.markers[name] - [0.0, 0.0, 30.0])
+    a, b = (derive_markers(tr, 12.5) for tr in (src, crouch))
+    for side in "LR":
+        for p, q in (("HJC", "KJC"), ("KJC", "AJC")):
+            la, lb = (np.linalg.norm(m[f"{side}_{p}"] - m[f"{side}_{q}"], axis=1) for m in (a, b))
+            assert np.abs(lb - la).max() < 3.0  # thigh and shank keep their lengths
+        # the thigh marker stays on its thigh: same distance from hip and knee centres
+        for j in ("HJC", "KJC"):
+            da, db = (np.linalg.norm(m[f"{side}_THI"] - m[f"{side}_{j}"], axis=1) for m in (a, b))
+            assert np.abs(db - da).max() < 3.0
+    ka, kb = (sim_knee_flexion(build_body(tr, 12.5).markers) for tr in (src, crouch))
+    assert ka.min() < 5.0 and kb.min() > 25.0  # never straight: flexed through stance
+    assert np.isnan(crouch.knee_ref).all()  # the source's Plug-in Gait angle no longer applies
+    with pytest.raises(ConfigError, match="crouch_mm"):
+        SimConfig(crouch_mm=-5.0)
 
 
 def test_harrington_hip_joint_centre() -> None:

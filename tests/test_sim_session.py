@@ -394,3 +394,57 @@ def test_reflectors_put_down_after_the_calibration() -> None:
         assert static.ir[win].max() == SAT and (static.depth[win] == 0).any()
     with pytest.raises(ConfigError, match="reflectors_from"):
         SimConfig(reflectors_from="walkway")
+
+
+def _swings(events: list[dict], side: str, pas: str) -> np.ndarray:
+    """Toe off to the next strike of one foot in one pass, s."""
+    ev = [e for e in events if e["pass"] == pas and e["side"] == side]
+    fs = np.array([e["time_s"] for e in ev if e["kind"] == "FS"])
+    out = []
+    for e in ev:
+        later = fs[fs > e["time_s"]] if e["kind"] == "FO" else ()
+        if len(later):
+            out.append(later[0] - e["time_s"])
+    return np.array(out)
+
+
+def test_a_paretic_swing_lasts_longer_and_the_body_slows_smoothly() -> None:
+    """The paretic leg's swing lasts ``paretic_swing`` times as long; the other leg's swing
+    and every position along the path are unchanged (only the timing is warped)."""
+    sym, par = (
+        simulate_session(TRIAL, seed=0, config=SimConfig.quick(paretic_swing=k)) for k in (1.0, 1.5)
+    )
+    a, b = (s.truth_summary("walk-01") for s in (sym, par))
+    for pas in ("out", "back"):
+        la, lb = (_swings(x["events"], "L", pas) for x in (a, b))
+        np.testing.assert_allclose(lb, 1.5 * la, rtol=0.01)
+        ra, rb = (_swings(x["events"], "R", pas) for x in (a, b))
+        np.testing.assert_allclose(rb, ra, atol=1e-9)
+    ma, mb = (x["spatiotemporal"]["mean"] for x in (a, b))
+    for side, sign in (("L", -1), ("R", 1)):
+        # The paretic leg's stance is a smaller share of its cycle, the other's a larger.
+        assert sign * (mb[side]["stance_pct"] - ma[side]["stance_pct"]) > 5.0
+        assert mb[side]["stride_length_mm"] == pytest.approx(ma[side]["stride_length_mm"], rel=1e-6)
+    ws, wp = (s.recordings["walk-01"].motion for s in (sym, par))
+    # Same places, later: the heel at each strike, and the pass's end.
+    hee = MARKER_INDEX["L_HEE"]
+    for es, ep in zip(a["events"], b["events"], strict=True):
+        assert (es["side"], es["kind"], es["pass"]) == (ep["side"], ep["kind"], ep["pass"])
+        pa = ws.markers_caps(np.array([es["time_s"]]))[0][0, hee]
+        pb = wp.markers_caps(np.array([ep["time_s"]]))[0][0, hee]
+        np.testing.assert_allclose(pb, pa, atol=0.5)
+    assert wp.pass_dur > ws.pass_dur + 0.5
+    p = wp.passes[1]
+    tau = np.linspace(-p.pre, wp.src_dur + p.post, 50)
+    np.testing.assert_allclose(wp._tau(p, wp.time_at(p, tau)), tau, atol=1e-6)
+    # The shoulder slows to about half its speed mid-swing, without a jump in speed.
+    v = {}
+    for name, w in (("sym", ws), ("par", wp)):
+        t = np.arange(0.3, w.pass_dur - 0.3, 0.005)  # the outward pass
+        v[name] = np.diff(w.markers_caps(t)[0][:, MARKER_INDEX["R_SHO"], 0]) / 0.005
+    assert v["par"].min() < 0.75 * v["sym"].min()
+    assert np.abs(np.diff(v["par"])).max() < 60.0  # mm/s per 5 ms: at most 12 m/s^2
+    with pytest.raises(ConfigError, match="paretic_swing"):
+        SimConfig(paretic_swing=0.8)
+    with pytest.raises(ConfigError, match="paretic_side"):
+        SimConfig(paretic_side="X")

@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
         if name.startswith("walk"):
             # Start where the source trial begins: the subject is in view, the costly case.
             p = rec.motion.passes[0]
-            k0 = int(np.searchsorted(rec.times.time_s, p.t0 + p.pre / rec.motion.cfg.speed_factor))
+            k0 = int(np.searchsorted(rec.times.time_s, rec.motion.time_at(p, 0.0)))
         n = min(args.frames, len(rec) - k0)
         rec.frame(k0)  # warm-up
         t = time.perf_counter()

@@ -150,11 +150,10 @@ def _preview_picks(name: str, rec: Any, max_frames: int | None) -> set[int]:
     if name != "walk-01":
         return set()
     m = rec.motion
-    speed = m.cfg.speed_factor
     times = []
     for p, fracs in zip(m.passes, ((0.3, 0.7), (0.5,)), strict=True):
         for f in fracs:
-            times.append(p.t0 + (p.pre + f * m.src_dur) / speed)
+            times.append(m.time_at(p, f * m.src_dur))
     idx = {int(np.argmin(np.abs(rec.times.time_s - t))) for t in times}
     return {k for k in idx if k < n}
 

@@ -204,6 +204,68 @@ def scale_trial(trial: Trial, k: float) -> Trial:
     )
 
 
+# Half the knee and ankle widths of Plug-in Gait (100 and 70 mm): the joint centres lie this
+# much plus the marker radius medial of the lateral markers.
+KNEE_HALF_WIDTH, ANKLE_HALF_WIDTH = 50.0, 35.0
+UPPER_BODY = ("C7", "SACR", "L_ASI", "R_ASI", "L_PSI", "R_PSI", "L_SHO", "R_SHO")
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) rotations taking directions a (F, 3) onto b (F, 3), about a x b."""
+    a, b = _unit(a), _unit(b)
+    v = np.cross(a, b)
+    c = (a * b).sum(axis=1)
+    vx = np.zeros((len(a), 3, 3))
+    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    vx = vx - vx.transpose(0, 2, 1)
+    return np.eye(3) + vx + (vx @ vx) / (1.0 + c)[:, None, None]
+
+
+def crouch_trial(trial: Trial, drop_mm: float, marker_radius: float = 12.5) -> Trial:
+    """The trial walked in crouch: pelvis and trunk ``drop_mm`` lower, feet where they were.
+
+    Each leg keeps its thigh and shank lengths (hip, knee and ankle joint centres), so the
+    knee flexes further: the knee is placed where the two lengths meet, bent toward the
+    pelvis's anterior axis (joint centres as :func:`derive_markers` places them for
+    ``marker_radius``); the thigh and tibia markers turn with their segments, the knee marker
+    moves with its joint centre, ankle, heel and toe markers stay. Ground contact and the
+    gait's timing are the source's. The source's Plug-in Gait knee angle no longer applies
+    (``knee_ref`` NaN). ``drop_mm`` = 0 returns the trial.
+    """
+    if drop_mm == 0.0:
+        return trial
+    m = {k: v.copy() for k, v in trial.markers.items()}
+    pf = pelvis_frame(m)
+    down = np.array([0.0, 0.0, drop_mm])
+    z = np.array([0.0, 0.0, 1.0])
+    fwd = _unit(pf.anterior - (pf.anterior @ z)[:, None] * z)
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        lat = sgn * pf.left
+        h0 = pf.hjc[side]
+        h1 = h0 - down
+        k0 = m[f"{side}_KNE"] - (KNEE_HALF_WIDTH + marker_radius) * lat
+        ank = m[f"{side}_ANK"] - (ANKLE_HALF_WIDTH + marker_radius) * lat
+        thigh = np.linalg.norm(k0 - h0, axis=1)
+        shank = np.linalg.norm(k0 - ank, axis=1)
+        d = np.linalg.norm(ank - h1, axis=1)
+        u = (ank - h1) / d[:, None]
+        a = (thigh**2 - shank**2 + d**2) / (2.0 * d)
+        h = np.sqrt(np.maximum(thigh**2 - a**2, 0.0))
+        w = _unit(fwd - (fwd * u).sum(axis=1, keepdims=True) * u)
+        k1 = h1 + a[:, None] * u + h[:, None] * w
+        rt = _rotation_between(k0 - h0, k1 - h1)
+        rs = _rotation_between(k0 - ank, k1 - ank)
+        m[f"{side}_KNE"] = m[f"{side}_KNE"] + (k1 - k0)
+        for name, rot, pivot0, pivot1 in (("THI", rt, h0, h1), ("TIB", rs, ank, ank)):
+            key = f"{side}_{name}"
+            if key in m:
+                m[key] = pivot1 + np.einsum("fij,fj->fi", rot, m[key] - pivot0)
+    for name in UPPER_BODY:
+        if name in m:
+            m[name] = m[name] - down
+    return replace(trial, markers=m, knee_ref=np.full_like(trial.knee_ref, np.nan))
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.where(n > 0, n, 1.0)
@@ -272,11 +334,11 @@ def derive_markers(trial: Trial, marker_radius: float) -> dict[str, np.ndarray]:
         hjc = pf.hjc[side]
         # Joint centres medial of the lateral markers by half the joint width plus the
         # marker radius, as in Plug-in Gait (knee width 100 mm, ankle width 70 mm).
-        kjc = m[f"{side}_KNE"] - (50.0 + marker_radius) * lat
+        kjc = m[f"{side}_KNE"] - (KNEE_HALF_WIDTH + marker_radius) * lat
         thigh_ax = _unit(kjc - hjc)
         m[f"{side}_HJC"] = hjc
         m[f"{side}_KJC"] = kjc
-        m[f"{side}_AJC"] = m[f"{side}_ANK"] - (35.0 + marker_radius) * lat
+        m[f"{side}_AJC"] = m[f"{side}_ANK"] - (ANKLE_HALF_WIDTH + marker_radius) * lat
         m[f"{side}_HIP"] = hjc + (85.0 + marker_radius) * lat + 15.0 * thigh_ax
         if f"{side}_SHO" not in m:
             if "C7" in m and np.isfinite(m["C7"]).all():

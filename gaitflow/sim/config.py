@@ -83,6 +83,12 @@ class SimConfig:
     arm_swing_gain: float = 0.7  # shoulder angle / contralateral thigh angle
     speed_factor: float = 1.0  # >1 plays the trial faster
     body_scale: float = 1.0  # the subject's size (a child < 1; body.scale_trial)
+    # An asymmetric (hemiparetic-like) gait: the paretic leg's swing lasts this many times
+    # as long, the whole body slowing while it swings (1 = the source's own timing;
+    # walk.WalkMotion's clock).
+    paretic_swing: float = 1.0
+    paretic_side: str = "L"
+    crouch_mm: float = 0.0  # pelvis and trunk this much lower, feet kept (body.crouch_trial)
     # Protocol durations.
     calibration_markers: int = 4
     calib_still_s: float = 1.2
@@ -108,6 +114,12 @@ class SimConfig:
             raise ConfigError(f"SimConfig.body_scale={self.body_scale} is outside 0.5..1.3")
         if self.speed_factor <= 0:
             raise ConfigError(f"SimConfig.speed_factor={self.speed_factor} must be positive")
+        if not 1.0 <= self.paretic_swing <= 3.0:
+            raise ConfigError(f"SimConfig.paretic_swing={self.paretic_swing} is outside 1..3")
+        if not 0.0 <= self.crouch_mm <= 150.0:
+            raise ConfigError(f"SimConfig.crouch_mm={self.crouch_mm} is outside 0..150 mm")
+        if self.paretic_side not in ("L", "R"):
+            raise ConfigError(f"SimConfig.paretic_side={self.paretic_side!r} is not L or R")
         if self.wand_mount not in WAND_MOUNTS:
             raise ConfigError(
                 f"SimConfig.wand_mount={self.wand_mount!r} is not one of {', '.join(WAND_MOUNTS)}"

@@ -23,7 +23,7 @@ from gaitflow.camera import Camera
 from gaitflow.markers import MARKER_INDEX, MARKER_NAMES
 from gaitflow.schemas.raw import RawFrame
 from gaitflow.schemas.truth import GroundTruth
-from gaitflow.sim.body import build_body, knee_flexion, load_trial, scale_trial
+from gaitflow.sim.body import build_body, crouch_trial, knee_flexion, load_trial, scale_trial
 from gaitflow.sim.config import RECORDING_KINDS, SimConfig
 from gaitflow.sim.render import Renderer
 from gaitflow.sim.truth import merged_flags, spatiotemporal, visibility
@@ -235,8 +235,8 @@ class SimSession:
                     "name": p.name,
                     "start_s": float(p.t0),
                     "end_s": float(p.t0 + wm.pass_dur),
-                    "source_start_s": float(p.t0 + p.pre / wm.cfg.speed_factor),
-                    "source_end_s": float(p.t0 + (p.pre + wm.src_dur) / wm.cfg.speed_factor),
+                    "source_start_s": float(wm.time_at(p, 0.0)),
+                    "source_end_s": float(wm.time_at(p, wm.src_dur)),
                     "direction_world": (p.R @ [1.0, 0, 0]).tolist(),
                     "side_facing_camera": "R" if p.name == "out" else "L",
                 }
@@ -272,6 +272,7 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
     """
     cfg = config or SimConfig()
     src = scale_trial(load_trial(trial), cfg.body_scale)
+    src = crouch_trial(src, cfg.crouch_mm, cfg.marker_radius_mm)
     body = build_body(
         src,
         cfg.marker_radius_mm,

@@ -75,6 +75,16 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         {"speed_factor": 0.35},
         "the trial played at 0.35x speed (about 0.4 m/s: a frail or post-stroke walker's speed)",
     ),
+    "paretic": (
+        {"paretic_swing": 1.5, "speed_factor": 0.7},
+        "the left leg's swing 1.5 times as long, the body slowing while it swings, at 0.7x"
+        " speed (a hemiparetic walker's asymmetric timing, about 0.8 m/s)",
+    ),
+    "crouch": (
+        {"crouch_mm": 30.0},
+        "a crouch gait: pelvis and trunk 30 mm lower with the feet unchanged, so the knees"
+        " stay flexed 30 deg or more (as in cerebral palsy); the static pose is crouched too",
+    ),
     "skew": (
         {"pan_deg": 6.0, "roll_deg": 3.0},
         "camera turned 6 deg along the walkway and rolled 3 deg (a tripod set up by hand)",

@@ -45,9 +45,11 @@ def _smooth(s: np.ndarray) -> np.ndarray:
 class Pass:
     """One straight pass: world = std @ R.T + T.
 
-    World time t maps to pass time tau = (t - t0) * speed - pre (s of source time; tau in
-    [0, src_dur] is the source trial itself, before and after it whole gait cycles of the
-    trial are repeated so that the subject walks in from outside the view and out of it).
+    World time t maps to pass time tau (s of source time; tau in [0, src_dur] is the source
+    trial itself, before and after it whole gait cycles of the trial are repeated so that the
+    subject walks in from outside the view and out of it) through the walk's clock:
+    tau = (t - t0) * speed - pre, or a warped clock for a paretic swing
+    (:meth:`WalkMotion.time_at`).
     """
 
     t0: float
@@ -202,7 +204,8 @@ class WalkMotion:
             pre = max(0.0, need_left / v, need_right / v)
             post = max(0.0, need_right / v_end, need_left / v_end)
         self.pass_src = pre + self.src_dur + post
-        self.pass_dur = self.pass_src / speed
+        self._warp = self._clock(pre, post)
+        self.pass_dur = self.pass_src / speed if self._warp is None else float(self._warp[1][-1])
         out = Pass(0.0, np.eye(3), np.array([x_view - x_mid, D - y_mean, 0.0]), "out", pre, post)
         ret = Pass(
             self.pass_dur + cfg.turn_s,
@@ -215,6 +218,44 @@ class WalkMotion:
         self.passes = (out, ret)
         self.duration_s = 2 * self.pass_dur + cfg.turn_s
         self.albedo = _albedo(body, cfg)
+
+    # ------------------------------------------------------------------ the clock
+    CLOCK_STEP_S = 0.002
+
+    def _clock(self, pre: float, post: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(tau, elapsed s) on a fine grid for a paretic swing; None for the source's timing.
+
+        Each swing of the paretic foot (its toe off to its next strike, in pass time) is
+        slowed by a raised cosine, whose mean over the swing is half its peak: the swing
+        lasts ``paretic_swing`` times as long, the body slows with it (the other leg's
+        single stance lengthens), and the speed changes smoothly at both ends.
+        """
+        cfg = self.cfg
+        if cfg.paretic_swing == 1.0 or self.cycles is None:
+            return None
+        n = int(np.ceil(self.pass_src / self.CLOCK_STEP_S)) + 1
+        tau = np.linspace(-pre, self.src_dur + post, n)
+        rate = np.ones(n)
+        events = self._events_tau(pre, post)
+        side = cfg.paretic_side
+        strikes = np.array(sorted(t for t, s, k, _ in events if s == side and k == "FS"))
+        longest = 0.6 * self.cycles[0].period  # a swing is 35-45 % of the cycle
+        peak = 2.0 * (cfg.paretic_swing - 1.0)
+        for a in sorted(t for t, s, k, _ in events if s == side and k == "FO"):
+            later = strikes[strikes > a]
+            if not later.size or later[0] - a > longest:
+                continue  # the pass ends in this swing, or its strike is not labelled
+            b = float(later[0])
+            sel = (tau > a) & (tau < b)
+            rate[sel] += peak * np.sin(np.pi * (tau[sel] - a) / (b - a)) ** 2
+        steps = 0.5 * (rate[1:] + rate[:-1]) * np.diff(tau)
+        return tau, np.concatenate([[0.0], np.cumsum(steps)]) / cfg.speed_factor
+
+    def time_at(self, p: Pass, tau: np.ndarray | float) -> np.ndarray | float:
+        """World time (s) at pass time ``tau`` of pass ``p`` (the inverse of ``_tau``)."""
+        if self._warp is None:
+            return p.t0 + (tau + p.pre) / self.cfg.speed_factor
+        return p.t0 + np.interp(tau, *self._warp)
 
     # ------------------------------------------------------------------ pass-local pose
     def _std(self, tau: np.ndarray):
@@ -248,7 +289,11 @@ class WalkMotion:
         return m @ p.R.T + p.T, a @ p.R.T + p.T, b @ p.R.T + p.T
 
     def _tau(self, p: Pass, t: np.ndarray) -> np.ndarray:
-        return (np.asarray(t, dtype=np.float64) - p.t0) * self.cfg.speed_factor - p.pre
+        elapsed = np.asarray(t, dtype=np.float64) - p.t0
+        if self._warp is None:
+            return elapsed * self.cfg.speed_factor - p.pre
+        tau, el = self._warp
+        return np.interp(elapsed, el, tau)
 
     def markers_caps(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Markers (K, 20, 3) and capsule ends (K, S, 3) x2 in world mm at times t (K,)."""
@@ -305,43 +350,44 @@ class WalkMotion:
         source), copies of the labelled events at the same gait phase are added
         (``copied`` True). Times in s from the recording's first frame.
         """
-        speed = self.cfg.speed_factor
-        out = []
-        for p in self.passes:
-            for tt, side, kind in self.trial.events:
-                out.append((tt, side, kind, p, False))
-            if self.cycles is None:
-                continue
-            mid = 0.5 * self.src_dur
-            for cyc, lo, hi in (
-                (self.cycles[0], -p.pre, mid),
-                (self.cycles[1], mid, self.src_dur + p.post),
-            ):
-                for side, kind, ph in _cycle_phases(self.trial.events, cyc):
-                    n0 = int(np.floor((lo - ph) / cyc.period))
-                    for n in range(n0, n0 + int((hi - lo) / cyc.period) + 3):
-                        tau = ph + n * cyc.period
-                        if not lo <= tau < hi:
-                            continue
-                        # Inside the source span only where the source left it unlabelled.
-                        near = [
-                            e
-                            for e in self.trial.events
-                            if e[1] == side and e[2] == kind and abs(e[0] - tau) < 0.4 * cyc.period
-                        ]
-                        if not near:
-                            out.append((tau, side, kind, p, True))
         res = [
             {
-                "time_s": float(p.t0 + (tau + p.pre) / speed),
+                "time_s": float(self.time_at(p, tau)),
                 "side": side,
                 "kind": kind,
                 "pass": p.name,
                 "copied": copied,
             }
-            for tau, side, kind, p, copied in out
+            for p in self.passes
+            for tau, side, kind, copied in self._events_tau(p.pre, p.post)
         ]
         return sorted(res, key=lambda e: e["time_s"])
+
+    def _events_tau(self, pre: float, post: float) -> list[tuple[float, str, str, bool]]:
+        """(tau, side, kind, copied) of a pass's events, in pass time (events_detail)."""
+        out = [(tt, side, kind, False) for tt, side, kind in self.trial.events]
+        if self.cycles is None:
+            return out
+        mid = 0.5 * self.src_dur
+        for cyc, lo, hi in (
+            (self.cycles[0], -pre, mid),
+            (self.cycles[1], mid, self.src_dur + post),
+        ):
+            for side, kind, ph in _cycle_phases(self.trial.events, cyc):
+                n0 = int(np.floor((lo - ph) / cyc.period))
+                for n in range(n0, n0 + int((hi - lo) / cyc.period) + 3):
+                    tau = ph + n * cyc.period
+                    if not lo <= tau < hi:
+                        continue
+                    # Inside the source span only where the source left it unlabelled.
+                    near = [
+                        e
+                        for e in self.trial.events
+                        if e[1] == side and e[2] == kind and abs(e[0] - tau) < 0.4 * cyc.period
+                    ]
+                    if not near:
+                        out.append((tau, side, kind, True))
+        return out
 
     def events(self) -> list[tuple[float, str, str, str]]:
         """(time_s, side, kind, pass) of every event, source and copied."""
