@@ -1011,7 +1011,8 @@ class Contact:
 
     Times in seconds; NaN where that end of the stance was not observed. ``heel_pos`` is the
     median progression of the heel while planted (mm along the walking direction): over its
-    flat range up to the heel rise, Fig. 6's stable window.
+    flat range where the heel lies within ``rise_frac`` of its lowest point, from where it
+    came down to that level to its rise, Fig. 6's stable window.
     """
 
     side: str
@@ -1147,14 +1148,21 @@ def foot_contacts(
         # locked end of the range lies higher up the wall: it brackets, it does not time)
         rise = float("nan")
         planted = r.right  # last sample of the heel's stable window (Fig. 6)
+        landed = r.left  # and its first
         if np.isfinite(hr.hi - hr.lo):
             seg = heel_h[r.left : r.right + 1]
             if np.isfinite(seg).any():
                 k0 = int(np.nanargmin(seg))
-                above = np.flatnonzero(seg[k0:] > seg[k0] + rise_frac * (hr.hi - hr.lo))
+                high = seg > seg[k0] + rise_frac * (hr.hi - hr.lo)
+                above = np.flatnonzero(high[k0:])
                 planted = r.left + k0 + int(above[0]) if above.size else r.right
                 if r.right_locked:
                     rise = float(t[planted])
+                # from where the heel came down to that level: a range can begin on the
+                # swing's wall (an open end where the heel came into view rising, merged
+                # with the next valley), and the median over the swing was no footprint
+                before = np.flatnonzero(high[:k0])
+                landed = r.left + (int(before[-1]) + 1 if before.size else 0)
         next_left = hranges[i + 1].left if i + 1 < len(hranges) else n
         to = to_from = float("nan")
         for q in tr.ranges:
@@ -1182,7 +1190,7 @@ def foot_contacts(
                     continue
             to, to_from = float(t[j]), since
         # the heel stands still from its strike to its rise, then rolls forward with the foot
-        pos = np.asarray(heel_prog[r.left : planted + 1], dtype=float)
+        pos = np.asarray(heel_prog[landed : planted + 1], dtype=float)
         pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")
         out.append(
             Contact(side, hs, rise, to, pos_med, float(t[r.left]), float(t[r.right]), to_from)

@@ -203,6 +203,31 @@ def test_foot_contacts_events_within_one_frame():
             assert np.min(np.abs(np.array(to_true) - x)) <= 1 / 30
 
 
+def test_a_heel_first_seen_rising_gives_its_footprint_where_it_comes_to_rest():
+    # btk_c3dorg_sample04_Matt crouched (``--variant crouch``), the near heel at a pass's
+    # start: first seen rising into its swing, then landing, then unlabelled (100 Hz, mm).
+    # Alg. 6 merged the open range on the swing's wall with the landing's valley, and the
+    # footprint was the median over the whole swing (426 mm): a step of 1258 mm.
+    h = [73, 79, 85, 91, 97, 103, 109, 115, 120, 126, 132, 138, 144, 150, 156, 163, 169, 170]
+    h += [168, 165, 164, 163, 163, 162, 161, 161, 159, 157, 154, 151, 146, 140, 133, 125, 116]
+    h += [107, 97, 89, 81, 74, 69, 64, 60, 56, 53, 50, 48, 46, 44, 43, 42, 40, 39, 39, 38, 38]
+    h += [38, 39, 39, 40]
+    p = [137, 138, 140, 141, 142, 144, 145, 146, 148, 149, 150, 151, 153, 154, 153, 152, 155]
+    p += [168, 189, 212, 233, 251, 270, 289, 308, 327, 347, 368, 390, 414, 439, 467, 497, 527]
+    p += [559, 592, 625, 661, 698, 735, 773, 812, 851, 889, 927, 964, 998, 1029, 1058, 1083]
+    p += [1106, 1125, 1141, 1155, 1166, 1174, 1181, 1185, 1188, 1189]
+    # a later stance and swing of the same heel, unseen in between
+    s = np.arange(0.0, 1.2, 0.01)
+    later_h = np.interp(s, [0, 0.5, 0.6, 0.85, 1.1, 1.2], [38, 38, 80, 190, 45, 38])
+    later_p = np.interp(s, [0, 0.5, 0.6, 1.1, 1.2], [2300, 2300, 2320, 3400, 3420])
+    hh = np.concatenate([[NAN] * 6, h, [NAN] * 60, later_h])
+    prog = np.concatenate([[NAN] * 6, p, [NAN] * 60, later_p])
+    t = np.arange(len(hh)) * 0.01
+    cs = gc.foot_contacts(t, hh, np.full_like(hh, NAN), prog, prog, "R", xi=0.03, phi=0.03)
+    assert abs(cs[0].heel_pos - 1189.0) < 40.0  # where it came to rest, not mid-swing
+    assert cs[1].heel_pos == 2300.0
+
+
 def test_a_swing_unseen_does_not_cost_the_later_heel_strikes():
     # The first swing falls in a gap (no sample: the foot hidden, or out of view), so Alg. 6
     # finds no peak between the first two flat ranges; each later strike must still be
