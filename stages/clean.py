@@ -36,7 +36,9 @@ The paper leaves the interference model unspecified [A-0]. Our reading (Rec. of
   IR and set to 1 in ``mask``. A bright component that overlaps a box but is not that
   track's measurement (a moving marker passing over the reflector) lifts the box for this
   frame, so that the marker is not cut; the paper lifts on the tracked marker's prediction,
-  which this stage, upstream of labelling, does not have.
+  which this stage, upstream of labelling, does not have. A component inside the box of a
+  bar (a long thin reflector: one side at least three times the other) is a piece of it,
+  left when the passing body hides the rest, and lifts nothing.
 """
 
 from __future__ import annotations
@@ -246,9 +248,19 @@ def clean_frame(
         u, v, bw, bh = t.x
         c0, c1 = int(np.floor(u - bw / 2 - m)), int(np.ceil(u + bw / 2 + m)) + 1
         r0, r1 = int(np.floor(v - bh / 2 - m)), int(np.ceil(v + bh / 2 + m)) + 1
+        # A component inside a bar's box is a piece of the bar: a long thin reflector (a
+        # chrome pole's highlight) half hidden by the passing body shows as short pieces
+        # that match no track, and they lifted the whole box, to be taken for markers. Not
+        # for a compact box, where a marker passing in front may lie inside it.
+        bar = max(bw, bh) >= 3.0 * min(bw, bh)
+        lo_u, hi_u = u - bw / 2, u + bw / 2  # its pixels, with half a pixel's slack
+        lo_v, hi_v = v - bh / 2, v + bh / 2
         hit = False
         for i in moving:
-            if bb[i, 2] >= c0 and bb[i, 0] < c1 and bb[i, 3] >= r0 and bb[i, 1] < r1:
+            inside = bar and (
+                bb[i, 0] >= lo_u and bb[i, 2] <= hi_u and bb[i, 1] >= lo_v and bb[i, 3] <= hi_v
+            )
+            if not inside and bb[i, 2] >= c0 and bb[i, 0] < c1 and bb[i, 3] >= r0 and bb[i, 1] < r1:
                 hit = True
                 break
         lift.append(hit)

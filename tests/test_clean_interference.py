@@ -82,6 +82,38 @@ def test_marker_crossing_the_reflector_lifts_the_mask() -> None:
     assert out2.mask[REFLECTOR].all()  # and back once the marker has gone
 
 
+def test_pieces_of_a_tall_reflector_half_hidden_stay_masked() -> None:
+    # A chrome pole's highlight: one pixel wide, rows 10-99 of column 60. The passing body
+    # hides rows 40-69: the two pieces left match no track; they lifted the box before and
+    # came out as marker-like blobs. A marker crossing the pole still lifts it.
+    def pole(k: int, hidden: slice | None = None, marker: bool = False) -> RawFrame:
+        f = raw(k)
+        ir = f.ir.copy()
+        ir[10:100, 60] = 65535
+        if hidden is not None:
+            ir[hidden, 55:66] = 800
+        if marker:
+            ir[50:53, 59:62] = 65535
+        return RawFrame(header=f.header, ir=ir, depth=f.depth)
+
+    st = clean.init(clean.PARAMS.resolve())
+    for k in range(35):
+        st, (out,) = clean.step(st, {"raw": pole(k)})
+    assert out.mask[10:100, 60].all()
+    st, (out,) = clean.step(st, {"raw": pole(35, hidden=slice(40, 70))})
+    assert out.mask[10:40, 60].all() and out.mask[70:100, 60].all()
+    assert (out.ir[10:100, 60] == 0).all()
+    st, (out,) = clean.step(st, {"raw": pole(36, hidden=slice(40, 70), marker=True)})
+    assert out.mask[10:100, 60].sum() == 0 and out.ir[51, 60] == 65535
+    assert out.mask[REFLECTOR].all()  # the other reflector stays masked
+    # A compact reflector's piece still lifts its box: there a marker may lie inside it.
+    f = pole(37)
+    ir = f.ir.copy()
+    ir[21:24, 30:34] = 800  # all but its top row hidden
+    st, (out,) = clean.step(st, {"raw": RawFrame(header=f.header, ir=ir, depth=f.depth)})
+    assert out.mask[REFLECTOR].sum() == 0 and out.mask[10:100, 60].all()
+
+
 def test_static_trial_does_not_learn_a_standing_subject() -> None:
     outs = run([raw(k, trial="static") for k in range(45)])
     assert not outs[-1][0].mask.any()
