@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from gaitflow.stages import label
 
 from gaitflow.markers import MARKER_INDEX, SITES
@@ -311,3 +312,48 @@ def test_a_hidden_near_tibia_wand_does_not_take_the_far_legs_blobs() -> None:
     near = [standing(s, 40.0) for s in ("TIB", "ANK", "HEE", "TOE")]
     a = _lower([list(sho), *near, hip], {}, {"R_SHO": 0, "R_HIP": 5}, geo, list(sho), "R", 1)
     assert a[MARKER_INDEX["R_TIB"]] == 1
+
+
+def _merged_heel_case(
+    assign_ankle: bool = False, radius: float = 2.05, ratio: float = 1.4
+) -> tuple[np.ndarray, np.ndarray]:
+    """btk_PiG_Motion3_FF (simulated, seed 0) frame 38: the right heel, in stance, named on
+    the blob it forms with the ankle (r_m 2.05 px against 1.2-1.5 for the others); the
+    subject model's standing ankle-to-heel vector (forward, e, height) is (-55, 43.7, -11.1)
+    mm. Returns (published right heel before, after), camera mm."""
+    geo = label.Geometry.from_model(None)
+    offsets = geo.offsets.copy()
+    hee, ank = SITES.index("HEE"), SITES.index("ANK")
+    offsets[0, hee] = offsets[0, ank] + np.array([-55.0, 43.7, -11.1])
+    geo = replace(geo, offsets=offsets)
+    rot = np.array(
+        [[0.9999, -0.0074, 0.0123], [-0.0125, -0.0255, 0.9996], [-0.007, -0.9996, -0.0256]]
+    )
+    radii = np.array([1.34, 1.4, 1.26, 1.42, 1.23, 1.47, 1.17, 1.41, 1.25, 1.21, radius, 1.42])
+    position = np.full((20, 3), np.nan)
+    heel = MARKER_INDEX["R_HEE"]
+    position[heel] = (-1466.0, 679.0, 2674.0)
+    assign = np.full(20, -1)
+    assign[heel] = 10
+    if assign_ankle:
+        assign[MARKER_INDEX["R_ANK"]] = 3
+        position[MARKER_INDEX["R_ANK"]] = (-1442.0, 673.0, 2652.0)
+    moved = label.merged_heel(position, assign, radii, "R", 1, rot, geo, ratio)
+    assert np.array_equal(np.delete(moved, heel, 0), np.delete(position, heel, 0), equal_nan=True)
+    return position[heel], moved[heel]
+
+
+def test_a_heel_on_its_merged_heel_ankle_blob_is_moved_to_the_heel() -> None:
+    true_heel = np.array([-1501.0, 688.0, 2709.0])
+    before, after = _merged_heel_case()
+    assert np.linalg.norm(before - true_heel) > 45.0  # between heel and ankle
+    assert np.linalg.norm(after - true_heel) < 20.0
+    # Half the vector, behind the blob along the walk (toward -u walking toward +u), deeper.
+    assert after[0] - before[0] == pytest.approx(-27.7, abs=0.1)
+    assert after[2] - before[2] == pytest.approx(21.6, abs=0.1)
+
+
+def test_a_heel_blob_of_one_marker_or_beside_a_labelled_ankle_stays() -> None:
+    for kwargs in ({"radius": 1.5}, {"assign_ankle": True}, {"ratio": 0.0}):
+        before, after = _merged_heel_case(**kwargs)
+        assert np.array_equal(before, after), kwargs
