@@ -1050,6 +1050,7 @@ def foot_contacts(
     refine: str = "velocity",
     hs_speed_frac: float = 0.1,
     to_speed_frac: float = 0.3,
+    to_late_s: float = 0.1,
     min_contact_s: float = 0.15,
     rise_frac: float = 0.05,
     arrive_speed_frac: float = 0.5,
@@ -1080,6 +1081,13 @@ def foot_contacts(
     side : "L" or "R". gamma, xi, phi, tau, max_born : see :func:`inflection_search`.
     refine : "velocity" or "none". hs_speed_frac, to_speed_frac : speed thresholds, as
         fractions of the foot's swing speed (90th percentile of its speed).
+    to_late_s : ``refine="velocity"`` only. A toe already faster than ``to_speed_frac``
+        when its flat range locked, and for more than this before the lock, left the floor
+        before it: the toe off is where that speed-up began. The range can run on into the
+        swing when the toe's lift-off was unseen for a few frames and its clearance stays
+        low (btk_PiG_Motion3_FF seed 1: a right toe off 0.29 s late, swing 0.15 s against
+        0.44 s); the lock normally lies a sample or two into the lift-off, where the run's
+        start would be early. 0 = always the lock.
     min_contact_s : a heel strike whose flat range runs into the end of the data (the foot
         leaves the view) must be followed by at least this much observed contact.
     rise_frac : heel rise = the heel above its lowest point in the range by this fraction
@@ -1168,7 +1176,7 @@ def foot_contacts(
         for q in tr.ranges:
             if q.right < r.left or q.left > r.right or not q.right_locked:
                 continue
-            since = float("nan")
+            since, began = float("nan"), -1
             if not (r.left <= q.right < next_left and q.right >= r.right - 1):
                 continue
             j = q.right
@@ -1180,7 +1188,8 @@ def foot_contacts(
                     fast = vt[q.left : j + 1] > to_speed_frac * ref
                 if fast[-1]:
                     slow = np.flatnonzero(~fast)
-                    since = float(t[q.left + (int(slow[-1]) + 1 if slow.size else 0)])
+                    began = q.left + (int(slow[-1]) + 1 if slow.size else 0)
+                    since = float(t[began])
                 j = j + int(rest[0]) if rest.size else max(j, stop)
                 if not vt[j] > to_speed_frac * ref:
                     continue  # the toe never left inside this stride: no toe off
@@ -1189,6 +1198,8 @@ def foot_contacts(
                     # long to fill): the first sample after the gap is not the toe off
                     continue
             to, to_from = float(t[j]), since
+            if began >= 0 and to_late_s > 0 and t[q.right] - t[began] > to_late_s:
+                to = float(t[began])  # the toe was in flight well before the lock
         # the heel stands still from its strike to its rise, then rolls forward with the foot
         pos = np.asarray(heel_prog[landed : planted + 1], dtype=float)
         pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")

@@ -157,6 +157,16 @@ PARAMS = ParamSet(
         Param("hs_speed_frac", float, 0.1, "ratio", "heel strike: heel speed / swing speed", 0.0),
         Param("to_speed_frac", float, 0.3, "ratio", "toe off: toe speed / swing speed", 0.0),
         Param(
+            "to_late_s",
+            float,
+            0.1,
+            "s",
+            "a toe already that fast for longer than this when its flat range locked had left"
+            " the floor: the toe off is where its speed-up began (0 = always at the lock)",
+            0.0,
+            1.0,
+        ),
+        Param(
             "progression",
             str,
             "walkway",
@@ -209,6 +219,7 @@ CONTACT_PARAMS = (
     "refine",
     "hs_speed_frac",
     "to_speed_frac",
+    "to_late_s",
 )
 BODY = [f"{s}_{m}" for s in "LR" for m in ("SHO", "ASI", "PSI", "HIP", "THI")]
 # the line of progression: markers that move with the body, not with a leg or an arm

@@ -271,9 +271,9 @@ def test_a_toe_off_whose_speed_up_began_in_a_gap_is_unknown():
     for x in to_true:
         late |= (t >= x) & (t < x + 0.2)
     th = np.where(late, 30.0, th)  # the toe skims the floor for 0.2 s into its swing
-    cs = gc.foot_contacts(t, hh, th, prog, prog, "L")
+    cs = gc.foot_contacts(t, hh, th, prog, prog, "L", to_late_s=0.0)
     c = min(cs, key=lambda c: abs(c.toe_off - to_true[1]) if np.isfinite(c.toe_off) else 9.0)
-    assert c.toe_off > to_true[1] + 0.1  # at the lock, in flight
+    assert c.toe_off > to_true[1] + 0.1  # at the lock, in flight (to_late_s off)
     assert abs(c.toe_off_from - to_true[1]) <= 1 / 30  # where the speed-up began
     seen = np.ones(len(t), bool)
     (kept,) = gc.drop_events_in_gaps([c], t, seen, seen, 0.15)
@@ -289,6 +289,33 @@ def test_a_toe_off_whose_speed_up_began_in_a_gap_is_unknown():
     for x, c in zip(since, [c for c in plain if np.isfinite(c.toe_off_from)], strict=True):
         assert x <= c.toe_off
         assert np.min(np.abs(np.array(to_true) - x)) <= 1 / 30
+
+
+def test_a_toe_in_flight_long_before_its_lock_has_its_toe_off_where_it_sped_up():
+    # btk_PiG_Motion3_FF (seed 1), the right toe: unseen for three frames across its
+    # lift-off (a gap short enough to fill), then seen low in its swing; Alg. 6 locked the
+    # toe's range 0.3 s into the swing and the toe off came 0.29 s late (swing 0.15 s
+    # against 0.44 s). A toe already in flight for longer than to_late_s at the lock left
+    # the floor where its speed-up began.
+    t, hh, th, prog, _, to_true = synthetic_walk(0.2)
+    skim = np.zeros_like(t, dtype=bool)
+    for x in to_true:
+        skim |= (t >= x) & (t < x + 0.2)
+    low = np.where(skim, 30.0, th)
+    found = [c.toe_off for c in gc.foot_contacts(t, hh, low, prog, prog, "L")]
+    at_lock = [c.toe_off for c in gc.foot_contacts(t, hh, low, prog, prog, "L", to_late_s=0.0)]
+    late = [x for x in at_lock if np.isfinite(x) and np.min(np.abs(np.array(to_true) - x)) > 0.1]
+    assert late  # the skimming toe's ranges lock in flight
+    assert np.isfinite(found).sum() == np.isfinite(at_lock).sum()
+    for x in found:
+        if np.isfinite(x):
+            assert np.min(np.abs(np.array(to_true) - x)) <= 1 / 30
+    # a plain walk, whose toe ranges lock a sample or two into the lift-off, keeps the lock
+    plain = synthetic_walk(0.2)[2]
+    np.testing.assert_array_equal(
+        [c.toe_off for c in gc.foot_contacts(t, hh, plain, prog, prog, "L")],
+        [c.toe_off for c in gc.foot_contacts(t, hh, plain, prog, prog, "L", to_late_s=0.0)],
+    )
 
 
 def test_spatiotemporal_from_synthetic_walk():
