@@ -1741,17 +1741,28 @@ def merged_heel(
     ankle left out. Its centroid (and 3D position) lies between the two markers, 30-50 mm
     ahead of the heel, which shortened the step that foot's stance measures by as much (a
     step 8.6 % short on btk_PiG_Motion3_FF). Such a blob is larger than a single marker's
-    (marker radius r_m 1.2-1.9 times the frame's median, against 0.9-1.2 for a single heel
-    or ankle), so a near heel whose blob's r_m is at least ``ratio`` times the median, with
-    its ankle unlabelled, is moved by half the subject model's standing ankle-to-heel
-    vector: the midpoint, the two markers' relative brightness being unknown. The pixel
-    stays the blob's centroid. The ankle on such a blob is left where it is: with the heel
-    mostly hidden it lies near the ankle (11-15 mm), and half the vector made it worse.
+    (marker radius r_m 1.2-1.9 times the frame's median, against 1.0-1.2 for a single
+    ankle), so a near heel whose blob's r_m is at least ``ratio`` times the median, with its
+    ankle unlabelled, is moved by half the subject model's standing ankle-to-heel vector:
+    the midpoint, the two markers' relative brightness being unknown. The pixel stays the
+    blob's centroid. The ankle on such a blob is left where it is: with the heel mostly
+    hidden it lies near the ankle (11-15 mm), and half the vector made it worse. Part of
+    Alg. 5 step 11 (the published 3D positions); a departure.
 
-    position : (20, 3) camera mm, as published (NaN = missing); returns a new (20, 3).
-    assign : (20,) blob per marker, -1 = none. radius : (N,) r_m of the frame's blobs, px.
-    near : "L" or "R" (the side facing the camera). direction : +1 / -1, walking toward
-    +/- the floor frame's first axis. rot : (3, 3) the floor frame's axes as rows.
+    Parameters
+    ----------
+    position : (20, 3) camera mm, as published (NaN = missing).
+    assign : (20,) blob per marker, -1 = none.
+    radius : (N,) marker radius r_m of the frame's blobs, px.
+    near : "L" or "R", the side facing the camera.
+    direction : +1 / -1, walking toward +/- the floor frame's first axis.
+    rot : (3, 3) the floor frame's axes as rows (:class:`FloorFrame`).
+    geo : the subject geometry (standing offsets of the near heel and ankle).
+    ratio : the merged-blob ratio; 0 = no change.
+
+    Returns
+    -------
+    (20, 3) new array.
     """
     out = np.array(position, dtype=np.float64)
     if ratio <= 0 or near not in ("L", "R") or direction == 0 or len(radius) < 3:
