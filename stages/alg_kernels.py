@@ -60,20 +60,20 @@ def block_max(ir: np.ndarray, block: int) -> np.ndarray:
     for by in range(hb):
         r0 = by * block
         r1 = min(r0 + block, h)
-        # Row-wise maxima first: a contiguous inner loop that LLVM vectorises. (Plain
-        # element loops throughout: slice assignments cost seconds of compile time.)
+        # Row-wise maxima first: a contiguous inner loop that LLVM vectorises, written
+        # with max() (a conditional store is not vectorised: 13x slower, 0.86 ms a frame
+        # with numba 0.68). Plain element loops throughout: slice assignments cost
+        # seconds of compile time.
         for c in range(w):
             row[c] = ir[r0, c]
         for r in range(r0 + 1, r1):
             for c in range(w):
-                if ir[r, c] > row[c]:
-                    row[c] = ir[r, c]
+                row[c] = max(row[c], ir[r, c])
         for bx in range(wb):
             c0 = bx * block
             m = row[c0]
             for c in range(c0 + 1, min(c0 + block, w)):
-                if row[c] > m:
-                    m = row[c]
+                m = max(m, row[c])
             out[by, bx] = m
     return out
 
