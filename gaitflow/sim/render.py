@@ -135,6 +135,8 @@ class FramePose:
     spheres : (B, N, 3) marker centres at B instants spread over the exposure.
     cap_a, cap_b : (S, 3) capsule end points at mid-exposure; cap_r (S,) radii.
     cap_albedo : (S,) IR albedo per capsule.
+    markers : (N, 3) marker centres at mid-exposure, when the motion computed them (the
+        ground truth takes them from here instead of posing the body once more).
     """
 
     spheres: np.ndarray
@@ -142,6 +144,7 @@ class FramePose:
     cap_b: np.ndarray
     cap_r: np.ndarray
     cap_albedo: np.ndarray
+    markers: np.ndarray | None = None
 
 
 @dataclass

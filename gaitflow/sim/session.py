@@ -107,7 +107,9 @@ class Recording:
         # straddle it and an even count has no sample there).
         pos_w = None
         if self.kind != "calibration":
-            pos_w = self.motion.markers_caps(np.array([t]))[0][0]
+            pos_w = pose.markers if pose is not None else None
+            if pos_w is None:
+                pos_w = self.motion.markers_caps(np.array([t]))[0][0]
         n = len(MARKER_NAMES)
         position = np.full((n, 3), np.nan)
         pixel = np.full((n, 2), np.nan)

@@ -188,6 +188,7 @@ class WalkMotion:
         x_view = D * np.tan(np.radians(cfg.pan_deg))
         self.cycles = _cycles(trial, body)
         self._resid: list[tuple[np.ndarray, ...]] = []
+        self._events: tuple[tuple[float, str, str, str], ...] | None = None
         for cyc in self.cycles or ():
             start = self.body.at(np.array([cyc.start]))
             end = self.body.at(np.array([cyc.start + cyc.period]))
@@ -338,8 +339,8 @@ class WalkMotion:
     def pose(self, t_mid: float, exposure_s: float, blur_samples: int) -> FramePose:
         ts = t_mid + exposure_s * (np.arange(blur_samples) + 0.5) / blur_samples - exposure_s / 2
         m, _, _ = self.markers_caps(ts)
-        _, a, b = self.markers_caps(np.array([t_mid]))
-        return FramePose(m, a[0], b[0], self.body.radius, self.albedo)
+        mid, a, b = self.markers_caps(np.array([t_mid]))
+        return FramePose(m, a[0], b[0], self.body.radius, self.albedo, mid[0])
 
     # ------------------------------------------------------------------ ground truth
     def events_detail(self) -> list[dict]:
@@ -390,8 +391,16 @@ class WalkMotion:
         return out
 
     def events(self) -> list[tuple[float, str, str, str]]:
-        """(time_s, side, kind, pass) of every event, source and copied."""
-        return [(e["time_s"], e["side"], e["kind"], e["pass"]) for e in self.events_detail()]
+        """(time_s, side, kind, pass) of every event, source and copied.
+
+        Built once per walk: the ground truth of every frame asks for them (0.75 ms a frame,
+        3 % of a walking frame's render, when they were rebuilt each time).
+        """
+        if self._events is None:
+            self._events = tuple(
+                (e["time_s"], e["side"], e["kind"], e["pass"]) for e in self.events_detail()
+            )
+        return list(self._events)
 
     def knee_ref(self, t: np.ndarray) -> np.ndarray:
         """Source Plug-in Gait knee flexion (K, 2) at times t, NaN in the turn.
@@ -496,8 +505,8 @@ class StaticMotion:
     def pose(self, t_mid: float, exposure_s: float, blur_samples: int) -> FramePose:
         ts = t_mid + exposure_s * (np.arange(blur_samples) + 0.5) / blur_samples - exposure_s / 2
         m, _, _ = self.markers_caps(ts)
-        _, a, b = self.markers_caps(np.array([t_mid]))
-        return FramePose(m, a[0], b[0], self.body.radius, self.albedo)
+        mid, a, b = self.markers_caps(np.array([t_mid]))
+        return FramePose(m, a[0], b[0], self.body.radius, self.albedo, mid[0])
 
     def events(self) -> list[tuple[float, str, str, str]]:
         return []
