@@ -1821,11 +1821,14 @@ def _output(
     side_on: np.ndarray | None = None,
     ref: tuple[np.ndarray, np.ndarray] | None = None,
     ff: FloorFrame | None = None,
+    merged: tuple[Geometry, float] | None = None,
 ) -> tuple[LabelledMarkers, tuple[np.ndarray, np.ndarray]]:
     """The labelled frame, and the (20,) depth and frame of each marker's last position.
 
     ``side_on`` (20,) bool: markers published at their surface point (locate's
     ``surface_offset_mm`` undone along the viewing ray); see the ``heel_side_on`` parameter.
+    ``merged`` (the subject geometry and ``merged_heel_ratio``; needs ``ff``): a near heel
+    on a merged heel-ankle blob is published at the heel (:func:`merged_heel`).
 
     ``prev`` (the previous call's second output, or None) enables the leg layer choice: a
     knee, tibia or ankle marker whose own-mode layer is the nearest surface in its window
@@ -1879,6 +1882,9 @@ def _output(
     if side_on is not None:
         k = np.flatnonzero(side_on & (assign >= 0))
         position[k] = surface_point(position[k], mk.surface_offset_mm)
+    if merged is not None and ff is not None and near:
+        radius = np.asarray(mk.marker_radius, dtype=np.float64)
+        position = merged_heel(position, assign, radius, near, direction, ff.rot, *merged)
     pixel[ii] = cen[b]
     zs = np.full(20, np.nan) if prev is None else prev[0].copy()
     seen = np.full(20, -(10**9)) if prev is None else prev[1].copy()
@@ -1944,14 +1950,10 @@ def step(state: LabelState, inputs: Mapping[str, Message]) -> tuple[LabelState, 
     direction = st.direction if st.sho_x is not None else 0
     track = p["leg_layer"] == "track"
     side_on = HEELS if p["heel_side_on"] else None
+    merged = (geo, p["merged_heel_ratio"]) if p["merged_heel_ratio"] > 0 else None
     out, leg_depth = _output(
-        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_ref, ff
+        mk, assign, direction, near, st.leg_depth if track else None, side_on, layer_ref, ff, merged
     )
-    if p["merged_heel_ratio"] > 0 and near:
-        moved = merged_heel(
-            out.position, assign, radius, near, direction, ff.rot, geo, p["merged_heel_ratio"]
-        )
-        out = replace(out, position=moved)
     return replace(st, leg_depth=leg_depth if track else None), [out]
 
 
