@@ -1176,7 +1176,7 @@ def foot_contacts(
         for q in tr.ranges:
             if q.right < r.left or q.left > r.right or not q.right_locked:
                 continue
-            since, began = float("nan"), -1
+            began = -1  # where the toe's speed-up to this toe off began, if already fast
             if not (r.left <= q.right < next_left and q.right >= r.right - 1):
                 continue
             j = q.right
@@ -1189,7 +1189,6 @@ def foot_contacts(
                 if fast[-1]:
                     slow = np.flatnonzero(~fast)
                     began = q.left + (int(slow[-1]) + 1 if slow.size else 0)
-                    since = float(t[began])
                 j = j + int(rest[0]) if rest.size else max(j, stop)
                 if not vt[j] > to_speed_frac * ref:
                     continue  # the toe never left inside this stride: no toe off
@@ -1197,9 +1196,9 @@ def foot_contacts(
                     # the toe sped up while unseen (its range was locked before a gap too
                     # long to fill): the first sample after the gap is not the toe off
                     continue
-            to, to_from = float(t[j]), since
-            if began >= 0 and to_late_s > 0 and t[q.right] - t[began] > to_late_s:
-                to = float(t[began])  # the toe was in flight well before the lock
+            to, to_from = float(t[j]), float(t[began]) if began >= 0 else float("nan")
+            if began >= 0 and to_late_s > 0 and t[q.right] - to_from > to_late_s:
+                to = to_from  # the toe was in flight well before the lock
         # the heel stands still from its strike to its rise, then rolls forward with the foot
         pos = np.asarray(heel_prog[landed : planted + 1], dtype=float)
         pos_med = float(nanmedian_last(pos)) if np.isfinite(pos).any() else float("nan")
