@@ -135,8 +135,8 @@ class FramePose:
     spheres : (B, N, 3) marker centres at B instants spread over the exposure.
     cap_a, cap_b : (S, 3) capsule end points at mid-exposure; cap_r (S,) radii.
     cap_albedo : (S,) IR albedo per capsule.
-    markers : (N, 3) marker centres at mid-exposure, when the motion computed them (the
-        ground truth takes them from here instead of posing the body once more).
+    markers : (N, 3) marker centres at mid-exposure, the ground truth's (a posed body's
+        frames; None for the calibration's operator).
     """
 
     spheres: np.ndarray

@@ -105,11 +105,7 @@ class Recording:
         cfg = ses.config
         # The truth is the marker position at mid-exposure, t itself (the blur samples
         # straddle it and an even count has no sample there).
-        pos_w = None
-        if self.kind != "calibration":
-            pos_w = pose.markers if pose is not None else None
-            if pos_w is None:
-                pos_w = self.motion.markers_caps(np.array([t]))[0][0]
+        pos_w = None if self.kind == "calibration" else pose.markers
         n = len(MARKER_NAMES)
         position = np.full((n, 3), np.nan)
         pixel = np.full((n, 2), np.nan)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -152,6 +153,16 @@ def _period(body: Body, around: float | None = None) -> float | None:
     if score[best] < 0.5:
         return None
     return float(lags[best] * dt)
+
+
+def _blurred_pose(motion: Any, t_mid: float, exposure_s: float, blur_samples: int) -> FramePose:
+    """A posed body's frame: markers at ``blur_samples`` instants over the exposure, the
+    capsules and the markers (the ground truth's) at mid-exposure. ``motion`` has
+    ``markers_caps``, ``body`` and ``albedo`` (:class:`WalkMotion`, :class:`StaticMotion`)."""
+    ts = t_mid + exposure_s * (np.arange(blur_samples) + 0.5) / blur_samples - exposure_s / 2
+    m, _, _ = motion.markers_caps(ts)
+    mid, a, b = motion.markers_caps(np.array([t_mid]))
+    return FramePose(m, a[0], b[0], motion.body.radius, motion.albedo, mid[0])
 
 
 class WalkMotion:
@@ -337,10 +348,7 @@ class WalkMotion:
         return res
 
     def pose(self, t_mid: float, exposure_s: float, blur_samples: int) -> FramePose:
-        ts = t_mid + exposure_s * (np.arange(blur_samples) + 0.5) / blur_samples - exposure_s / 2
-        m, _, _ = self.markers_caps(ts)
-        mid, a, b = self.markers_caps(np.array([t_mid]))
-        return FramePose(m, a[0], b[0], self.body.radius, self.albedo, mid[0])
+        return _blurred_pose(self, t_mid, exposure_s, blur_samples)
 
     # ------------------------------------------------------------------ ground truth
     def events_detail(self) -> list[dict]:
@@ -503,10 +511,7 @@ class StaticMotion:
         return m, a, b
 
     def pose(self, t_mid: float, exposure_s: float, blur_samples: int) -> FramePose:
-        ts = t_mid + exposure_s * (np.arange(blur_samples) + 0.5) / blur_samples - exposure_s / 2
-        m, _, _ = self.markers_caps(ts)
-        mid, a, b = self.markers_caps(np.array([t_mid]))
-        return FramePose(m, a[0], b[0], self.body.radius, self.albedo, mid[0])
+        return _blurred_pose(self, t_mid, exposure_s, blur_samples)
 
     def events(self) -> list[tuple[float, str, str, str]]:
         return []
