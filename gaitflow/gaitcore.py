@@ -1639,3 +1639,45 @@ def split_passes(
                 out.append(Pass(a, b + 1, d))
     out.sort(key=lambda p: p.start)
     return out
+
+
+def extend_to_exit(
+    t: np.ndarray,
+    passes: Sequence[Pass],
+    trunk_seen: np.ndarray,
+    feet_seen: np.ndarray,
+    tail_s: float = 0.25,
+) -> list[Pass]:
+    """Each pass carried on while its trunk has left the image and a foot is still seen.
+
+    Walking out of the field of view, the trunk leaves first and the trailing foot stays in
+    view for the rest of its stance and its toe off. The body progression then comes from
+    that planted foot alone (:func:`split_passes` is given the median of every marker seen
+    when the trunk is not), reads as standing, and the pass ended before the toe off: on a
+    very slow walker (0.4 m/s) the foot stayed 0.4-0.8 s. A pass whose trunk is last seen at
+    most ``tail_s`` after its end (half the slope window of :func:`split_passes`: the slope
+    there already averages in the samples that follow) continues over the samples with the
+    trunk unseen and a foot seen, up to the next pass's start. A pass whose trunk stays in
+    view (a subject who stops or turns in the image) is not extended.
+
+    Parameters
+    ----------
+    t : (N,) s; passes : from :func:`split_passes`, in time order.
+    trunk_seen, feet_seen : (N,) bool, a trunk (shoulder, pelvis, hip) and a foot (heel,
+        toe) marker seen at each sample.
+
+    Returns
+    -------
+    The passes, each with its ``stop`` moved (or not).
+    """
+    out = []
+    for i, ps in enumerate(passes):
+        lim = passes[i + 1].start if i + 1 < len(passes) else len(t)
+        k = ps.stop
+        while k < lim and trunk_seen[k] and feet_seen[k] and t[k] - t[ps.stop - 1] <= tail_s:
+            k += 1
+        gone = k
+        while k < lim and not trunk_seen[k] and feet_seen[k]:
+            k += 1
+        out.append(replace(ps, stop=k) if k > gone else ps)
+    return out

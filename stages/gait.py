@@ -23,7 +23,9 @@ Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
    axis from the start to the end point (``progression="walkway"``) or, per pass, along the
    subject's own line of progression (``"pass"``, :func:`gaitflow.gaitcore.line_of_progression`);
 4. the walk split into passes by the direction of progression of the pelvis markers (the
-   return pass shows the other side of the body to the camera);
+   return pass shows the other side of the body to the camera); a pass whose trunk walks
+   out of the image goes on while a foot is still seen (its last stance and toe off,
+   ``exit_tail_s``, :func:`gaitflow.gaitcore.extend_to_exit`);
 5. per pass and foot, Alg. 6 on the heel and toe heights, events refined inside the flat
    ranges (``refine``), then step and stride length, stance and swing, the eight phases;
 6. knee flexion = 180 deg - angle HIP-KNE-ANK from the gap-filled, resampled 3D markers;
@@ -194,6 +196,16 @@ PARAMS = ParamSet(
         ),
         Param("min_pass_s", float, 0.6, "s", "shortest walking pass", 0.1),
         Param("min_speed_mm_s", float, 150.0, "mm/s", "slower than this is not walking", 1.0),
+        Param(
+            "exit_tail_s",
+            float,
+            0.25,
+            "s",
+            "a pass whose trunk leaves the image at most this long after the pass ends goes on"
+            " while a foot is seen (its last toe off; 0 = off)",
+            0.0,
+            1.0,
+        ),
         Param("live_every", int, 15, "frames", "live event search period (0 = at the end)", 0),
         Param("live_delay_s", float, 0.5, "s", "live events older than this are confirmed", 0.0),
         Param("live_window_s", float, 20.0, "s", "live event search looks this far back", 2.0),
@@ -542,6 +554,14 @@ def analyse(
         axis, origin = _axis(plane, start, end, pos)
         body = _body_progression(pq, origin, axis)
         found = gc.split_passes(tq, body, p["min_speed_mm_s"], min_duration_s=p["min_pass_s"])
+        if p["exit_tail_s"] > 0:
+            found = gc.extend_to_exit(
+                tq,
+                found,
+                np.isfinite(pq[:, TRUNK, 0]).any(axis=1),
+                np.isfinite(pq[:, FOOT_MARKERS, 0]).any(axis=1),
+                p["exit_tail_s"],
+            )
         for ps in found:
             sl = slice(ps.start, ps.stop)
             u = float(ps.direction) * axis  # signed: progression grows along the walk

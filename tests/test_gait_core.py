@@ -402,6 +402,22 @@ def test_split_passes_forth_and_back():
     assert gc.split_passes(t, np.full_like(t, NAN)) == []
 
 
+def test_a_pass_goes_on_while_a_foot_is_seen_after_the_trunk_left_the_image():
+    t = np.arange(12) / 10.0
+    passes = [gc.Pass(0, 5, 1), gc.Pass(10, 12, -1)]
+    trunk = np.array([1, 1, 1, 1, 1, 1, 0, 0, 0, 0, 1, 1], bool)  # seen one sample past the end
+    feet = np.array([1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 1, 1], bool)
+    out = gc.extend_to_exit(t, passes, trunk, feet, tail_s=0.15)
+    assert out == [gc.Pass(0, 8, 1), passes[1]]  # on through the feet-only samples 6 and 7
+    # the trunk seen longer after the end than tail_s: the subject stayed in the image
+    assert gc.extend_to_exit(t, passes, trunk, feet, tail_s=0.05) == passes
+    # never into the next pass
+    near = [gc.Pass(0, 5, 1), gc.Pass(7, 12, -1)]
+    assert gc.extend_to_exit(t, near, trunk, np.ones(12, bool), tail_s=0.15)[0] == gc.Pass(0, 7, 1)
+    # nothing seen past the end but the trunk: unchanged
+    assert gc.extend_to_exit(t, passes, np.ones(12, bool), feet, tail_s=0.15) == passes
+
+
 # --- robustness helpers ------------------------------------------------------------------------
 
 

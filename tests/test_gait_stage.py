@@ -229,3 +229,37 @@ def test_a_wrong_hip_sample_does_not_bend_the_filled_knee(session):
     assert _worst_knee_error(session, bad, start) < 4.0
     # (the check dropped after filling only, as before: 8.8 deg; no check at all: 9.6)
     assert _worst_knee_error(session, bad, start, segment_tol=0.0) > 8.0
+
+
+def test_the_last_toe_off_after_the_trunk_left_the_image_is_found(session):
+    """Walking out of the view, the trunk and the leading leg leave first and the trailing
+    foot stays for its toe off; the pass goes on while that foot is seen (``exit_tail_s``)."""
+    import dataclasses
+
+    from gaitflow.markers import MARKER_INDEX
+
+    ses, name, frames, cal = session
+    t = ses.recordings[name].times.time_s
+    fo = [e for e in bg.observable_events(ses, name) if e["kind"] == "FO" and e["pass"] == "out"]
+    last = fo[-1]
+    foot = [MARKER_INDEX[f"{last['side']}_{m}"] for m in ("ANK", "HEE", "TOE")]
+    gone = [k for k in range(20) if k not in foot]
+    left = list(frames)
+    # from 0.35 s before that toe off to the turn, only the trailing foot is in the image
+    for j in range(int(np.searchsorted(t, last["time_s"] - 0.35)), int(np.searchsorted(t, 6.0))):
+        pos = np.array(left[j].position)
+        pos[gone] = np.nan
+        left[j] = dataclasses.replace(left[j], position=pos)
+
+    def toe_offs(**params):
+        doc = [o for o in run_stage(left, cal, **params) if o.STREAM == "summary"][-1].results
+        return [
+            e["time_s"]
+            for e in doc["events"]
+            if e["kind"] == "toe_off" and e["side"] == last["side"]
+            and abs(e["time_s"] - last["time_s"]) < 0.2
+        ]  # fmt: skip
+
+    found = toe_offs()
+    assert len(found) == 1 and abs(found[0] - last["time_s"]) <= 0.033, (found, last)
+    assert toe_offs(exit_tail_s=0.0) == []  # the pass ended when the trunk left
