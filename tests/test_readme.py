@@ -19,3 +19,10 @@ def test_readme_gives_the_two_commands_and_ci_runs_the_test_one() -> None:
     assert "make test" in ci
     makefile = (ROOT / "Makefile").read_text()
     assert "\ntest:" in makefile and "\ndemo:" in makefile
+
+
+def test_readme_gait_parameter_table_matches_the_declaration() -> None:
+    from gaitflow.stages import gait
+
+    readme = (ROOT / "README.md").read_text()
+    assert gait.PARAMS.table() in readme, "regenerate: gaitflow.stages.gait.PARAMS.table()"
