@@ -1653,12 +1653,13 @@ def extend_to_exit(
     Walking out of the field of view, the trunk leaves first and the trailing foot stays in
     view for the rest of its stance and its toe off. The body progression then comes from
     that planted foot alone (:func:`split_passes` is given the median of every marker seen
-    when the trunk is not), reads as standing, and the pass ended before the toe off: on a
-    very slow walker (0.4 m/s) the foot stayed 0.4-0.8 s. A pass whose trunk is last seen at
-    most ``tail_s`` after its end (half the slope window of :func:`split_passes`: the slope
-    there already averages in the samples that follow) continues over the samples with the
-    trunk unseen and a foot seen, up to the next pass's start. A pass whose trunk stays in
-    view (a subject who stops or turns in the image) is not extended.
+    when the trunk is not), reads as standing, and the pass ended before the toe off (a
+    walker at 0.4 m/s: the trailing foot in view 0.6 s after the shoulder left, its toe off
+    0.25 s after the pass's end). A pass whose trunk is last seen at most ``tail_s`` after
+    its end (half the slope window of :func:`split_passes`: the slope there already averages
+    in the samples that follow) continues over the samples with the trunk unseen and a foot
+    seen, up to the next pass's start. A pass whose trunk stays in view (a subject who stops
+    or turns in the image) is not extended.
 
     Parameters
     ----------
