@@ -1448,11 +1448,14 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                 b = cand[tp[k] : tp[k] + 1]
                 if lone and not (fr.age[i] == 1 and _unary(fr, i, b)[0] < 4.0):
                     continue
-                # ... and the other site's last-frame track does not lie nearer it along
-                # the foot (forward, height): a half-hidden far foot's depth jumps, so the
-                # depth may favour the wrong track.
+                # ... and the other site's track does not lie nearer it along the foot
+                # (forward, height): a half-hidden far foot's depth jumps, so the depth may
+                # favour the wrong track. Any live track counts, not only last frame's: as
+                # the near foot swings past the planted far one it hides the far heel, then
+                # the toe, and the heel's blob, back after a frame or two unseen, took the
+                # toe's label from the toe's last-frame track.
                 o = far_idx[1 - k]
-                if lone and fr.age[o] == 1 and _sagittal(fr, o, b) < _sagittal(fr, i, b):
+                if lone and fr.tracked[o] and _sagittal(fr, o, b) < _sagittal(fr, i, b):
                     continue
                 chosen[i] = int(tp[k])
     _accept(fr, chosen, cand, geo, hip, gate)

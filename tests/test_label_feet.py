@@ -357,3 +357,56 @@ def test_a_heel_blob_of_one_marker_or_beside_a_labelled_ankle_stays() -> None:
     for kwargs in ({"radius": 1.5}, {"assign_ankle": True}, {"ratio": 0.0}):
         before, after = _merged_heel_case(**kwargs)
         assert np.array_equal(before, after), kwargs
+
+
+def _far_heel_back_frame(heel_age: int) -> np.ndarray:
+    """bz_HC034A (a walk of ../shared/gaitdata, not bundled), frame 113, near side R: the
+    near foot swings past the planted far (left) foot. Last frame it hid the far heel, now
+    the far toe; the far heel's blob is back. The far toe's track is one frame old, the far
+    heel's ``heel_age`` frames (2 in the walk)."""
+    blobs = [
+        [3582.0, -254.0, 857.0],  # 0
+        [3569.0, -113.0, 319.0],  # 1 R_TIB
+        [3437.0, -14.0, 162.0],  # 2
+        [3604.0, -256.0, 551.0],  # 3
+        [3627.0, -150.0, 1237.0],  # 4 R_SHO
+        [3510.0, -64.0, 899.0],  # 5
+        [3484.0, -74.0, 172.0],  # 6 R_ANK
+        [3704.0, -137.0, 468.0],  # 7 R_KNE
+        [3543.0, -143.0, 94.0],  # 8 R_TOE
+        [3463.0, 5.0, 26.0],  # 9 L_HEE, back in view
+    ]
+    tracks = {
+        "L_HEE": ([3421.0, -63.0, 39.0], [-35.0, -65.0, 21.0], heel_age),
+        "L_TOE": ([3648.0, 40.0, 50.0], [-13.0, -26.0, 6.0], 1),
+        "R_HIP": ([3508.0, -172.0, 770.0], [31.0, -1.0, 8.0], 2),
+        "R_THI": ([3534.0, -147.0, 526.0], [60.0, 0.0, 6.0], 2),
+        "R_KNE": ([3635.0, -137.0, 461.0], [75.0, -2.0, 10.0], 1),
+        "R_TIB": ([3486.0, -106.0, 335.0], [87.0, 0.0, -8.0], 1),
+        "R_ANK": ([3379.0, -72.0, 203.0], [98.0, -3.0, -19.0], 1),
+        "R_TOE": ([3428.0, -129.0, 99.0], [125.0, 3.0, -11.0], 1),
+    }
+    geo = _geometry(
+        1213.0,
+        {
+            ("ANK", "HEE"): 63.0,
+            ("ANK", "TOE"): 128.0,
+            ("HEE", "TOE"): 178.0,
+            ("KNE", "ANK"): 379.0,
+            ("HIP", "KNE"): 339.0,
+            ("THI", "KNE"): 79.0,
+            ("HIP", "THI"): 260.0,
+        },
+    )
+    return _lower(blobs, tracks, {"R_SHO": 4}, geo, [3626.0, -154.0, 1237.0], "R", 1, frame=113)
+
+
+@pytest.mark.parametrize("heel_age", [2, 3])
+def test_a_far_heel_back_in_view_does_not_take_the_toes_label(heel_age: int) -> None:
+    # The lone far-foot blob is where the heel's track says (42 mm), 185 mm behind the
+    # toe's: only the toe's track was one frame old, so the heel's was not asked, the toe
+    # label took the heel's blob and its track then followed the heel. The heel's track,
+    # two or three frames old, now keeps it from the toe.
+    a = _far_heel_back_frame(heel_age)
+    assert a[MARKER_INDEX["L_TOE"]] != 9
+    assert a[MARKER_INDEX["R_ANK"]] == 6 and a[MARKER_INDEX["R_TOE"]] == 8
