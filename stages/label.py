@@ -97,6 +97,7 @@ import numpy as np
 from gaitflow.schemas import CalibrationRecord, LabelledMarkers, Markers3D, Message, SubjectModel
 from gaitflow.stages.base import StageSpec
 from gaitflow.stages.model import (
+    CAMERA_HEIGHT,
     TEMPLATE_SHO_HEIGHT,
     FloorFrame,
     template_layout,
@@ -234,15 +235,7 @@ PARAMS = ParamSet(
             " shoulder, never the track's",
             0.0,
         ),
-        Param(
-            "camera_height_mm",
-            float,
-            800.0,
-            "mm",
-            "camera height assumed when the calibration has no floor plane",
-            100.0,
-            5000.0,
-        ),
+        CAMERA_HEIGHT,
     ),
 )
 

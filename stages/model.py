@@ -123,6 +123,18 @@ HIP_DROP_FACTOR = 2.0
 # ankle at 0.04-0.07 H on the trials), a tibia wand above it (0.10-0.28 H).
 FOOT_BAND_FRAC = 0.085
 
+# The floor frame's fallback (FloorFrame.from_record), declared once for every stage that
+# builds one.
+CAMERA_HEIGHT = Param(
+    "camera_height_mm",
+    float,
+    800.0,
+    "mm",
+    "camera height assumed when the calibration has no floor plane",
+    100.0,
+    5000.0,
+)
+
 PARAMS = ParamSet(
     NAME,
     (
@@ -155,15 +167,7 @@ PARAMS = ParamSet(
             100.0,
             3000.0,
         ),
-        Param(
-            "camera_height_mm",
-            float,
-            800.0,
-            "mm",
-            "camera height assumed when the calibration has no floor plane",
-            100.0,
-            5000.0,
-        ),
+        CAMERA_HEIGHT,
     ),
 )
 
