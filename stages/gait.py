@@ -31,8 +31,10 @@ Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
 6. knee flexion = 180 deg - angle HIP-KNE-ANK from the gap-filled, resampled 3D markers;
    before filling, a frame's hip, knee or ankle sample that makes the thigh or the shank
    (or both: the knee) depart from its median length (``segment_tol``) is dropped
-   (:func:`gaitflow.gaitcore.chain_outliers`), and after it the knee angle is unknown where
-   a length still departs.
+   (:func:`gaitflow.gaitcore.chain_outliers`); then an ankle gap is filled from the knee
+   and tibia markers seen through it, the ankle held in the shank's frame
+   (``segment_fill``, :func:`gaitflow.gaitcore.fill_from_segment`; the Bezier fills the
+   rest); after filling, the knee angle is unknown where a length still departs.
 
 Array conventions: marker axis follows ``gaitflow.markers.MARKER_NAMES``; camera mm; NaN =
 missing; time axis 0; seconds; degrees. Ground truth is never read here.
@@ -83,6 +85,14 @@ PARAMS = ParamSet(
             "max_born", float, 0.25, "normalised", "highest level a floor contact may start", 0.05
         ),
         Param("max_gap_s", float, 0.3, "s", "longest gap filled by a cubic Bezier", 0.0, 2.0),
+        Param(
+            "segment_fill",
+            bool,
+            True,
+            "",
+            "an ankle gap is filled first from the knee and tibia markers seen through it"
+            " (the shank's frame), the Bezier only where they are not",
+        ),
         Param(
             "event_gap_s",
             float,
@@ -388,11 +398,7 @@ def _axis(plane: np.ndarray, start: np.ndarray | None, end: np.ndarray | None, p
 
 
 def _sagittal_normal(
-    p: Mapping[str, Any],
-    plane: np.ndarray | None,
-    start: np.ndarray | None,
-    end: np.ndarray | None,
-    pos: np.ndarray,
+    p: Mapping[str, Any], plane: np.ndarray | None, axis: np.ndarray
 ) -> np.ndarray | None:
     """The sagittal plane's normal when ``knee_plane`` is ``sagittal`` (else None).
 
@@ -403,7 +409,6 @@ def _sagittal_normal(
     """
     if p["knee_plane"] != "sagittal" or plane is None:
         return None
-    axis, _origin = _axis(plane, start, end, pos)
     return gc.lateral_axis(plane, axis)
 
 
@@ -518,6 +523,8 @@ def analyse(
         pq, _ = _fill_resample(t, pos[:, need], need, p, None, keep)
     if len(pq) != nq:
         raise StageError("gait", f"resampled {len(pq)} samples where {nq} were expected")
+    # the walking axis: the passes' progression, the knee's sagittal plane
+    axis, origin = _axis(plane, start, end, pos)
     knee = {"L": np.full(nq, np.nan), "R": np.full(nq, np.nan)}
     if live and "knee" in prev:
         kept["knee"] = prev["knee"]  # for the next full analysis, which extends it
@@ -533,10 +540,21 @@ def analyse(
                 drop = gc.chain_outliers(leg[:, 0], leg[:, 1], leg[:, 2], p["segment_tol"])
                 for k, bad in enumerate(drop):
                     leg[bad, k] = np.nan
+        if p["segment_fill"]:
+            lateral = gc.lateral_axis(plane, axis)
+            for s, leg in zip("LR", (kpos[:, 0:3], kpos[:, 3:6]), strict=True):
+                tib = pos[:, MARKER_INDEX[f"{s}_TIB"]].copy()
+                if p["segment_tol"] > 0:
+                    # a tibia label off the shank (its distance to the knee departs from
+                    # the median) would turn the filled ankle with it
+                    tib[gc.segment_outliers(leg[:, 1], tib, p["segment_tol"])] = np.nan
+                leg[:, 2] = gc.fill_from_segment(
+                    t, leg[:, 2], leg[:, 1], tib, lateral, p["max_gap_s"]
+                )
         pk, knee_series = _fill_resample(t, kpos, KNEE_MARKERS, p, prev.get("knee"), keep)
         if knee_series is not None:
             kept["knee"] = knee_series
-        lat = _sagittal_normal(p, plane, start, end, pos)
+        lat = _sagittal_normal(p, plane, axis)
         for s in "LR":
             hip, kne, ank = (pk[:, MARKER_INDEX[f"{s}_{m}"]] for m in ("HIP", "KNE", "ANK"))
             knee[s] = gc.knee_flexion(hip, kne, ank, lat)
@@ -551,7 +569,6 @@ def analyse(
     phases: dict[str, list[dict[str, float]]] = {"L": [], "R": []}
     events: list[dict[str, Any]] = []
     if nq >= 3:
-        axis, origin = _axis(plane, start, end, pos)
         body = _body_progression(pq, origin, axis)
         found = gc.split_passes(tq, body, p["min_speed_mm_s"], min_duration_s=p["min_pass_s"])
         if p["exit_tail_s"] > 0:

@@ -549,3 +549,37 @@ def test_chain_outliers_name_the_wrong_marker_of_the_leg():
     assert np.flatnonzero(bh).tolist() == [2]
     assert np.flatnonzero(ba).tolist() == [4]
     assert np.flatnonzero(bk).tolist() == [6]
+
+
+def test_an_ankle_gap_is_filled_from_the_shank_it_rides_on():
+    # A shank swinging forward about the knee at 300 deg/s then stopping (terminal swing),
+    # in the sagittal plane z = 0 (lateral axis z): tibia 200 mm and ankle 400 mm below the
+    # knee, the ankle 15 mm ahead of the knee-tibia line.
+    t = np.arange(20) / 30.0
+    ang = np.radians(np.minimum(-40.0 + 300.0 * t, 20.0))  # from the vertical, forward +
+    down = np.stack([np.sin(ang), -np.cos(ang), np.zeros_like(ang)], axis=1)
+    ahead = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], axis=1)
+    kne = np.tile([0.0, 500.0, 0.0], (20, 1))
+    tib = kne + 200.0 * down
+    ank_true = kne + 400.0 * down + 15.0 * ahead
+    ank = ank_true.copy()
+    ank[4:11] = np.nan  # 7 frames: 0.27 s between the seen samples around
+    lateral = np.array([0.0, 0.0, 1.0])
+    out = gc.fill_from_segment(t, ank, kne, tib, lateral, max_gap_s=0.3)
+    np.testing.assert_allclose(out, ank_true, atol=1e-6)  # rigid: exact
+    bezier, _ = gc.fill_gaps(t, ank, max_gap_s=0.3)
+    assert np.max(np.linalg.norm(bezier[4:11] - ank_true[4:11], axis=1)) > 20.0
+    # left for the Bezier: a gap longer than max_gap_s, one where the tibia is unseen, one
+    # touching the series' end
+    np.testing.assert_array_equal(
+        np.isnan(gc.fill_from_segment(t, ank, kne, tib, lateral, max_gap_s=0.2)[4:11]), True
+    )
+    tib_hole = tib.copy()
+    tib_hole[7] = np.nan
+    assert np.isnan(gc.fill_from_segment(t, ank, kne, tib_hole, lateral)[4:11]).all()
+    tail = ank_true.copy()
+    tail[15:] = np.nan
+    assert np.isnan(gc.fill_from_segment(t, tail, kne, tib, lateral)[15:]).all()
+    # a segment along the lateral axis gives no frame: left as it is
+    across = kne + np.array([0.0, 0.0, 50.0])
+    assert np.isnan(gc.fill_from_segment(t, ank, kne, across, lateral)[4:11]).all()
