@@ -128,9 +128,10 @@ def fill_from_segment(
     are, for :func:`fill_gaps`.
 
     Why: :func:`fill_gaps` carries the marker's own velocity at the gap's ends into it. In
-    terminal swing the ankle decelerates from about 4 m/s within a few frames, so a Bezier
-    over a 0.2 s ankle gap overshoots and the knee angle went 20 degrees off (a child's
-    walk); the knee and tibia markers, seen through the gap, carry the shank's rotation.
+    terminal swing the ankle comes to rest within a few frames, so the Bezier over a
+    seven-frame ankle gap overshot and the knee angle read 34 degrees where it was 13 (the
+    simulated child's walk, btk_PiG_Motion3_FF left); the knee and tibia markers, seen
+    through the gap, carry the shank's rotation.
 
     Parameters
     ----------
