@@ -403,10 +403,10 @@ def _far_heel_back_frame(heel_age: int) -> np.ndarray:
 
 @pytest.mark.parametrize("heel_age", [2, 3])
 def test_a_far_heel_back_in_view_does_not_take_the_toes_label(heel_age: int) -> None:
-    # The lone far-foot blob is where the heel's track says (42 mm), 185 mm behind the
-    # toe's: only the toe's track was one frame old, so the heel's was not asked, the toe
-    # label took the heel's blob and its track then followed the heel. The heel's track,
-    # two or three frames old, now keeps it from the toe.
+    # The lone far-foot blob lies 125 mm (sagittal) from the heel's prediction, its track two
+    # frames old, and 175 mm from the toe's, one frame old: only the toe's track was asked,
+    # the toe label took the heel's blob and its track then followed the heel. The heel's
+    # track, two or three frames old (165 mm), now keeps it from the toe.
     a = _far_heel_back_frame(heel_age)
     assert a[MARKER_INDEX["L_TOE"]] != 9
     assert a[MARKER_INDEX["R_ANK"]] == 6 and a[MARKER_INDEX["R_TOE"]] == 8
