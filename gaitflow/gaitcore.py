@@ -155,7 +155,7 @@ def fill_from_segment(
     vn = np.linalg.norm(v, axis=1)
     # a segment within ~1 degree of the lateral axis has no frame to speak of
     v = v / np.where(vn > 0.02, vn, np.nan)[:, None]
-    w = np.cross(u, v)
+    basis = np.stack((u, v, np.cross(u, v)), axis=1)  # (F, 3, 3): rows u, v, w
     seen = np.isfinite(v).all(axis=1)
     nt = len(t)
     for g0, g1 in runs(missing_rows(out)):
@@ -164,14 +164,11 @@ def fill_from_segment(
             continue
         if not seen[lo : hi + 1].all():
             continue
-        ends = [
-            np.array([(out[i] - a[i]) @ u[i], (out[i] - a[i]) @ v[i], (out[i] - a[i]) @ w[i]])
-            for i in (lo, hi)
-        ]
+        ends = np.einsum("kij,kj->ki", basis[[lo, hi]], out[[lo, hi]] - a[[lo, hi]])
         s = ((t[g0 : g1 + 1] - t[lo]) / (t[hi] - t[lo]))[:, None]
         c = (1.0 - s) * ends[0] + s * ends[1]
         sl = slice(g0, g1 + 1)
-        out[sl] = a[sl] + c[:, :1] * u[sl] + c[:, 1:2] * v[sl] + c[:, 2:3] * w[sl]
+        out[sl] = a[sl] + np.einsum("ki,kij->kj", c, basis[sl])
     return out
 
 

@@ -397,21 +397,6 @@ def _axis(plane: np.ndarray, start: np.ndarray | None, end: np.ndarray | None, p
     return u / np.linalg.norm(u), np.zeros(3)
 
 
-def _sagittal_normal(
-    p: Mapping[str, Any], plane: np.ndarray | None, axis: np.ndarray
-) -> np.ndarray | None:
-    """The sagittal plane's normal when ``knee_plane`` is ``sagittal`` (else None).
-
-    Why: seen from the side, a marker's position across the walkway comes from its depth,
-    the noisiest coordinate (tens of mm on a silhouette or with a limb in front); the
-    sagittal angle uses only the two coordinates the image gives. In a straight walk the
-    knee moves in about that plane, so the two angles differ by a degree or two.
-    """
-    if p["knee_plane"] != "sagittal" or plane is None:
-        return None
-    return gc.lateral_axis(plane, axis)
-
-
 def _near_side(frames: Sequence[FrameRec]) -> str:
     """The side facing the camera from geometry, when the labeller did not say: the side
     whose knee and ankle markers are nearer the camera centre (median distance)."""
@@ -540,8 +525,8 @@ def analyse(
                 drop = gc.chain_outliers(leg[:, 0], leg[:, 1], leg[:, 2], p["segment_tol"])
                 for k, bad in enumerate(drop):
                     leg[bad, k] = np.nan
+        lateral = gc.lateral_axis(plane, axis)  # the sagittal plane's normal
         if p["segment_fill"]:
-            lateral = gc.lateral_axis(plane, axis)
             for s, leg in zip("LR", (kpos[:, 0:3], kpos[:, 3:6]), strict=True):
                 tib = pos[:, MARKER_INDEX[f"{s}_TIB"]].copy()
                 if p["segment_tol"] > 0:
@@ -554,7 +539,12 @@ def analyse(
         pk, knee_series = _fill_resample(t, kpos, KNEE_MARKERS, p, prev.get("knee"), keep)
         if knee_series is not None:
             kept["knee"] = knee_series
-        lat = _sagittal_normal(p, plane, axis)
+        # knee_plane "sagittal": seen from the side, a marker's position across the walkway
+        # comes from its depth, the noisiest coordinate (tens of mm on a silhouette or with
+        # a limb in front); the sagittal angle uses only the two coordinates the image
+        # gives. In a straight walk the knee moves in about that plane, so the two angles
+        # differ by a degree or two.
+        lat = lateral if p["knee_plane"] == "sagittal" else None
         for s in "LR":
             hip, kne, ank = (pk[:, MARKER_INDEX[f"{s}_{m}"]] for m in ("HIP", "KNE", "ANK"))
             knee[s] = gc.knee_flexion(hip, kne, ank, lat)
