@@ -13,7 +13,7 @@ from gaitflow.stages import calibrate, grab, label, model
 
 from gaitflow.camera import Camera, marker_diameter
 from gaitflow.commands import analyze
-from gaitflow.errors import InputError, ParameterError, StageError
+from gaitflow.errors import ConfigError, InputError, ParameterError, StageError
 from gaitflow.evaluate_label import calibration_record
 from gaitflow.session import SessionWriter, session_stage_params
 from gaitflow.sim.variants import OTHER_UNIT, VARIANTS, sim_config, variant_changes
@@ -83,6 +83,23 @@ def test_variants_change_the_scene_only() -> None:
         assert not {"params", "stage"} & set(variant_changes(name))
     with pytest.raises(Exception, match="'nope'"):
         variant_changes("nope")
+
+
+def test_variants_joined_with_plus_combine_their_set_ups() -> None:
+    cfg = sim_config("child+far+noisy")
+    assert (cfg.body_scale, cfg.walk_distance_mm, cfg.depth_noise_scale) == (0.72, 3500.0, 2.0)
+    # two camera changes merge field by field: the other unit's intrinsics at 15 frames/s
+    cam = sim_config("unit2+fps15").camera
+    assert cam == dataclasses.replace(OTHER_UNIT, fps=15.0)
+    assert sim_config("fps15+unit2").camera == cam
+    # the same value twice is no conflict
+    assert variant_changes("strays+strays_late") == variant_changes("strays_late")
+    with pytest.raises(ConfigError, match=r"'unit2\+k4a'.*camera's fx"):
+        variant_changes("unit2+k4a")
+    with pytest.raises(ConfigError, match=r"marker_diameter_mm \(20.0, 30.0\)"):
+        variant_changes("d20+d30")
+    with pytest.raises(ConfigError, match=r"'nope' in 'child\+nope'"):
+        variant_changes("child+nope")
 
 
 # --- the camera.json travels with the frames (gaitflow run, a grab stage on its own) ------

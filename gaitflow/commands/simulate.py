@@ -193,8 +193,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--variant",
         default="base",
-        choices=list(VARIANTS),
-        help="a named set-up of `gaitflow bench gait --variant` (default base): "
+        metavar="NAME[+NAME...]",
+        help="a named set-up of `gaitflow bench gait --variant` (default base; join names "
+        "with + to combine them, e.g. child+far+noisy): "
         + "; ".join(f"{k}: {v[1]}" for k, v in VARIANTS.items() if k != "base"),
     )
     p.add_argument(

@@ -12,6 +12,7 @@ Units as in :class:`gaitflow.sim.config.SimConfig`: mm, degrees.
 
 from __future__ import annotations
 
+from dataclasses import asdict, replace
 from typing import Any
 
 from gaitflow.camera import Camera
@@ -136,10 +137,40 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
 
 
 def variant_changes(name: str) -> dict[str, Any]:
-    """The SimConfig changes of variant ``name``; ConfigError naming it if unknown."""
-    if name not in VARIANTS:
-        raise ConfigError(f"simulator variant {name!r} is unknown (known: {list(VARIANTS)})")
-    return dict(VARIANTS[name][0])
+    """The SimConfig changes of variant ``name``; ConfigError naming it if unknown.
+
+    Names joined by ``+`` combine set-ups (``child+far+noisy``): their changes are merged.
+    Two camera changes merge field by field (``unit2+fps15``: the other unit's intrinsics
+    at 15 frames/s); any other key set by two parts to different values is a ConfigError,
+    as is a camera field both parts change (``unit2+k4a``).
+    """
+    changes: dict[str, Any] = {}
+    for part in name.split("+"):
+        if part not in VARIANTS:
+            raise ConfigError(
+                f"simulator variant {part!r} in {name!r} is unknown (known: {list(VARIANTS)};"
+                " join names with '+' to combine them)"
+            )
+        for key, value in VARIANTS[part][0].items():
+            changes[key] = _merged(name, key, changes[key], value) if key in changes else value
+    return changes
+
+
+def _merged(name: str, key: str, old: Any, new: Any) -> Any:
+    """One SimConfig value set by two parts of combined variant ``name``."""
+    if isinstance(old, Camera) and isinstance(new, Camera):
+        default = asdict(Camera())
+        was, now = asdict(old), asdict(new)
+        both = [f for f in default if was[f] != default[f] and now[f] != default[f]]
+        clash = [f for f in both if was[f] != now[f]]
+        if clash:
+            raise ConfigError(
+                f"simulator variant {name!r}: two parts set the camera's {', '.join(clash)}"
+            )
+        return replace(old, **{f: now[f] for f in default if now[f] != default[f]})
+    if old != new:
+        raise ConfigError(f"simulator variant {name!r}: two parts set {key} ({old!r}, {new!r})")
+    return old
 
 
 def sim_config(name: str = "base", quick: bool = True) -> Any:
