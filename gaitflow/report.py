@@ -37,20 +37,14 @@ import numpy as np
 
 from gaitflow import __version__
 from gaitflow.errors import InputError
+from gaitflow.gaitcore import PHASES
 from gaitflow.results import floats
 
 SIDES = ("L", "R")
 SIDE_NAME = {"L": "Left", "R": "Right"}
 COLOURS = {"L": "#c0392b", "R": "#1f5fa8"}
-PHASE_NAMES = (
-    "loading_response",
-    "mid_stance",
-    "terminal_stance",
-    "pre_swing",
-    "initial_swing",
-    "mid_swing",
-    "terminal_swing",
-)
+# Initial contact is the instant a cycle starts; the seven phases after it have durations.
+PHASE_NAMES = PHASES[1:]
 
 
 def normative() -> dict[str, Any]:
