@@ -44,11 +44,12 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    ones are completed with the far heel, toe and tibia (the far tibia only absorbs its
    blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
    track; a lone far blob only on last frame's track, and not when the other site's
-   last-frame track lies nearer it in (forward, height)); ambiguity is judged on the
+   live track lies nearer it in (forward, height)); ambiguity is judged on the
    joint hypotheses, for the near labels and the far ones alike; a lone near foot marker needs a
    fresh track. Foot tracks widen with the time unseen (``FOOT_SPEED_SIG``: swing onset);
    an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims,
-   and the thigh wand for one the knee's fresh track claims;
+   and a tracked thigh wand for one the knee's fresh track claims (judged across the
+   blob's viewing ray, along which a layer in front moves it);
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
    limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
    ANK; THI and TIB on their segments, ``_on_segment``, up to the subject's standing
@@ -262,7 +263,7 @@ FOOT_SITES = [SITES.index(s) for s in ("ANK", "HEE", "TOE")]
 FOOT_SPEED_SIG = 2400.0
 # Track claims (squared sigma; see _lower): a far heel or toe without a fresh track pays a
 # miss for a blob that the same site's fresh near track predicts within CLAIM_SIG2, and the
-# thigh wand for a blob that the knee's fresh track predicts so (sagittal plane).
+# thigh wand for a blob that the knee's fresh track predicts so (across its viewing ray).
 CLAIM_SIG2 = 4.0
 # A far heel or toe without a fresh track pays a miss unless it lies this much (mm) deeper
 # than the near foot's mean depth (20 mm with a fresh track; see _lower).
@@ -559,6 +560,8 @@ class _Frame:
     publish_asis_psis: bool = True
     still: np.ndarray | None = None  # (N,) bool, blob stood still while the subject walked
     outside: np.ndarray | None = None  # (20,) bool, predicted outside the image: no blob
+    # (3,) the camera's centre in these coordinates; None: viewing rays along the e axis
+    cam: np.ndarray | None = None
 
     def pos(self, i: int) -> np.ndarray:
         """(N, 3) blob positions under marker ``i``'s cluster mode."""
@@ -588,12 +591,35 @@ def _fresh(fr: _Frame, idx: int) -> bool:
     return bool(fr.tracked[idx] and fr.age[idx] <= 2)
 
 
-def _unary(fr: _Frame, idx: int, cand: np.ndarray, axes: list[int] | None = None) -> np.ndarray:
-    """Squared-sigma distance of candidate blobs (K,) to marker ``idx``'s prediction, over
-    the floor axes ``axes`` (default all three; [0, 2]: forward and height, the sagittal
-    plane, where a blob's depth may be a layer in front of it)."""
+def _unary(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
+    """Squared-sigma distance of candidate blobs (K,) to marker ``idx``'s prediction."""
     d = (fr.pos(idx)[cand] - fr.pred[idx]) / fr.sig[idx]
-    return (d[:, axes if axes is not None else slice(None)] ** 2).sum(axis=1)
+    return (d**2).sum(axis=1)
+
+
+def _across_ray(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
+    """Offset (K, 3) of marker ``idx``'s prediction from the viewing rays of candidate blobs
+    (K,), its part along each ray removed.
+
+    A blob's depth may be a layer in front of its marker (an arm, a wand's stick), which
+    moves the blob along its viewing ray only. Dropping the e axis (the sagittal plane)
+    assumes level rays; from a camera above or below the marker, a layer 130 mm in front
+    also reads 40 mm high or low (a camera 1.2 m high, a knee 0.3 m high, 2.75 m away).
+    """
+    q = fr.pos(idx)[cand]
+    if fr.cam is None:
+        ray = np.broadcast_to(np.array([0.0, 1.0, 0.0]), q.shape)
+    else:
+        ray = q - fr.cam
+        ray = ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    d = fr.pred[idx] - q
+    return d - (d * ray).sum(axis=1, keepdims=True) * ray
+
+
+def _off_ray(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
+    """Squared-sigma distance (K,) of marker ``idx``'s prediction to the viewing rays of
+    candidate blobs (K,) (:func:`_across_ray`)."""
+    return ((_across_ray(fr, idx, cand) / fr.sig[idx]) ** 2).sum(axis=1)
 
 
 def _sagittal(fr: _Frame, idx: int, cand: np.ndarray) -> float:
@@ -940,6 +966,7 @@ def label_frame(
             p["publish_asis_psis"],
             _still(ah, None if prev_q is None else prev_q[:, [0, 2]], abs(va) * dt),
             outside,
+            ff.to_floor(np.zeros(3)) * np.array([direction, 1.0, 1.0]),
         )
         _pelvis(fr, geo, sho, H, p["gate"])
         _lower(fr, geo, sho, H, p["gate"])
@@ -1479,15 +1506,18 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     if hip_blob >= 0:
         # The pelvis search has judged the hip's own fit: here only the leg may overrule it.
         h3.U[4, K2 - 1] = 0.0
-    if _fresh(fr, kne_i) and _fresh(fr, thi_i):
+    if _fresh(fr, kne_i) and fr.tracked[thi_i]:
         # Track claim: the thigh wand pays a miss for a blob that the knee's fresh track
-        # predicts within 2 sigma in the sagittal plane, and better than the thigh's does.
+        # predicts within 2 sigma of its viewing ray, and better than the thigh's does.
         # A thigh wand 50-70 mm above the knee, hidden behind the swinging arm, otherwise
         # took the knee's blob whenever the knee's depth there was the arm's (100+ mm too
         # near: the knee's shank length and depth then cost more than the thigh's miss).
-        # One way only: a thigh track on the knee's blob would claim it back and hold the
-        # swap (seen on the ``high`` set-up).
-        u_kne, u_thi = (_unary(fr, i, lc, [0, 2]) for i in (kne_i, thi_i))
+        # The thigh's track need only be live: the arm hides the wand for several frames.
+        # Without one (a thigh prediction from the standing pose only), a knee track
+        # already on the thigh's blob claimed it and held the leg shifted by one marker
+        # (the crouch gait). One way only: a thigh track on the knee's blob would claim it
+        # back and hold the swap (seen on the ``high`` set-up).
+        u_kne, u_thi = (_off_ray(fr, i, lc) for i in (kne_i, thi_i))
         h3.U[1, :K2] += np.where((u_kne < CLAIM_SIG2) & (u_kne < u_thi), MISS_COST, 0.0)
     pr = h3.present
     thigh, shank = geo.d("HIP", "KNE"), geo.d("KNE", "ANK")

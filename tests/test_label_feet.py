@@ -37,12 +37,14 @@ def _lower(
     near: str,
     direction: int,
     frame: int = 20,
+    cam: list[float] | None = None,
 ) -> np.ndarray:
     """Run the lower-body search on one frame; return the (20,) blob per marker.
 
     blobs : (N, 3) oriented floor positions (the same under every cluster mode).
     tracks : marker -> (last position, velocity per frame, both un-oriented; frames since).
     assigned : labels already given (the shoulder, the pelvis search's hip).
+    cam : the camera's centre in the oriented floor frame (None: level viewing rays).
     """
     st = label.init(label.PARAMS.resolve({}))
     last, vel, seen = st.last.copy(), st.vel.copy(), st.seen.copy()
@@ -69,6 +71,7 @@ def _lower(
         4.0,
         frame - seen,
         False,
+        cam=None if cam is None else np.asarray(cam, float),
     )
     label._lower(fr, geo, sho_o, geo.sho_h, 4.0)
     return fr.assign
@@ -223,6 +226,146 @@ def test_the_knees_fresh_track_keeps_its_blob_from_a_hidden_thigh_wand() -> None
     a = _lower(blobs, tracks, {"R_SHO": 0}, geo, [2274.0, -142.0, 1037.0], "R", 1, frame=75)
     assert a[MARKER_INDEX["R_THI"]] != 9
     assert a[MARKER_INDEX["R_KNE"]] == 9
+
+
+def test_the_knees_claim_is_judged_across_the_viewing_ray() -> None:
+    # A child (shoulder 830 mm) seen by a camera 1.2 m high, tilted down (a child+high
+    # session from bz_HC002D), frame 71, near side R: hip and thigh wand hidden behind the
+    # arm; the knee's blob has the arm's depth, 127 mm too near. Along the descending ray
+    # that also puts it 34 mm higher, halfway to the thigh track's prediction: in forward
+    # and height the thigh's track predicted it better, and the thigh label took it. Across
+    # the ray the knee's track is 12 mm from it, the thigh's 62 mm.
+    blobs = [
+        [1506.0, -2.0, 149.0],  # 0 L_HEE
+        [1639.0, -187.0, 636.0],  # 1
+        [1686.0, -125.0, 842.0],  # 2 R_SHO
+        [1744.0, -172.0, 619.0],  # 3
+        [1711.0, -54.0, 119.0],  # 4 R_TIB
+        [1610.0, -39.0, 93.0],  # 5
+        [1728.0, -197.0, 332.0],  # 6 R_KNE, at the arm's depth
+        [1713.0, -53.0, 46.0],  # 7 R_ANK
+        [1675.0, -28.0, 26.0],  # 8 R_HEE
+        [1797.0, -36.0, 35.0],  # 9 R_TOE
+    ]
+    tracks = {
+        "L_HEE": ([1429.0, -6.0, 160.0], [71.0, -11.0, 14.0], 1),
+        "L_TOE": ([1504.0, 29.0, 55.0], [71.0, 23.0, 7.0], 1),
+        "R_HIP": ([1627.0, -149.0, 524.0], [37.0, -5.0, 9.0], 2),
+        "R_THI": ([1668.0, -107.0, 357.0], [31.0, 0.0, 5.0], 2),
+        "R_KNE": ([1705.0, -68.0, 295.0], [20.0, -1.0, 3.0], 1),
+        "R_TIB": ([1707.0, -54.0, 118.0], [6.0, -2.0, 1.0], 1),
+        "R_ANK": ([1713.0, -54.0, 45.0], [0.0, 0.0, -1.0], 1),
+        "R_HEE": ([1672.0, -24.0, 24.0], [-1.0, 3.0, -1.0], 1),
+        "R_TOE": ([1797.0, -34.0, 34.0], [0.0, 0.0, -1.0], 1),
+    }
+    geo = _geometry(
+        830.0,
+        {
+            ("ANK", "HEE"): 45.0,
+            ("ANK", "TOE"): 83.0,
+            ("HEE", "TOE"): 123.0,
+            ("KNE", "ANK"): 250.0,
+            ("HIP", "KNE"): 246.0,
+            ("THI", "KNE"): 66.0,
+            ("HIP", "THI"): 180.0,
+        },
+    )
+    sho, cam = [1687.0, -125.0, 839.0], [1951.0, -2762.0, 1199.0]
+    a = _lower(blobs, tracks, {"R_SHO": 2}, geo, sho, "R", 1, frame=71, cam=cam)
+    assert a[MARKER_INDEX["R_THI"]] != 6
+    assert a[MARKER_INDEX["R_KNE"]] in (6, -1)
+    # With level rays assumed (the depth axis dropped), the thigh takes the knee's blob.
+    level = _lower(blobs, tracks, {"R_SHO": 2}, geo, sho, "R", 1, frame=71)
+    assert level[MARKER_INDEX["R_THI"]] == 6
+
+
+def test_a_thigh_track_unseen_for_two_frames_still_yields_the_knees_blob() -> None:
+    # The same child walking back (near side L), frame 299: the arm has hidden hip and
+    # thigh wand for two frames, so the thigh's track is live but not fresh. The knee's
+    # blob again has the arm's depth (about 90 mm too near); the knee's fresh track still claims
+    # it (the claim asked for a fresh thigh track, and the thigh label took the blob).
+    blobs = [
+        [-340.0, -71.0, 147.0],  # 0 L_TIB
+        [-583.0, -19.0, 135.0],  # 1
+        [-431.0, -106.0, 844.0],  # 2 L_SHO
+        [-415.0, -165.0, 322.0],  # 3 L_KNE, at the arm's depth
+        [-254.0, -73.0, 64.0],  # 4 L_TOE
+        [-329.0, -82.0, 62.0],  # 5 L_ANK
+        [-502.0, -31.0, 49.0],  # 6
+        [-616.0, -36.0, 36.0],  # 7
+        [-378.0, -71.0, 36.0],  # 8 L_HEE
+    ]
+    tracks = {
+        "L_HIP": ([536.0, -143.0, 523.0], [-26.0, -5.0, 3.0], 2),
+        "L_THI": ([523.0, -125.0, 370.0], [-50.0, -14.0, 12.0], 3),
+        "L_KNE": ([397.0, -69.0, 312.0], [-44.0, -4.0, 1.0], 1),
+        "L_TIB": ([426.0, -74.0, 157.0], [-88.0, 2.0, -14.0], 1),
+        "L_ANK": ([439.0, -87.0, 71.0], [-105.0, 0.0, -20.0], 1),
+        "L_HEE": ([500.0, -58.0, 53.0], [-95.0, -9.0, -25.0], 1),
+        "L_TOE": ([363.0, -77.0, 52.0], [-115.0, 7.0, -3.0], 1),
+    }
+    geo = _geometry(
+        832.0,
+        {
+            ("ANK", "HEE"): 49.0,
+            ("ANK", "TOE"): 80.0,
+            ("HEE", "TOE"): 123.0,
+            ("KNE", "ANK"): 251.0,
+            ("HIP", "KNE"): 245.0,
+            ("THI", "KNE"): 65.0,
+            ("HIP", "THI"): 179.0,
+        },
+    )
+    sho, cam = [-432.0, -107.0, 848.0], [-1955.0, -2761.0, 798.0]
+    a = _lower(blobs, tracks, {"L_SHO": 2}, geo, sho, "L", -1, frame=299, cam=cam)
+    assert a[MARKER_INDEX["L_THI"]] != 3
+    assert a[MARKER_INDEX["L_KNE"]] == 3
+
+
+def test_a_knee_track_does_not_claim_from_a_thigh_without_a_track() -> None:
+    # Crouch gait (btk_c3dorg_sample04_Matt, the crouch set-up), frame 39, the second of a
+    # pass: the knee's new track began on the thigh wand's blob (blob 7; the knee is blob
+    # 12), the thigh has no track, and the hip label sits on a blob by the hidden hip
+    # (blob 8). Claiming for the knee here made the thigh pay for its own blob and take
+    # the hip's, and the tracks then held the leg shifted by one marker for eight frames.
+    # (The knee label stays on the thigh's blob, where its track began, either way.)
+    blobs = [
+        [367.0, 0.0, 1185.0],  # 0
+        [541.0, 15.0, 593.0],  # 1
+        [291.0, -193.0, 706.0],  # 2 (used by the pelvis search)
+        [223.0, -166.0, 1191.0],  # 3 R_SHO
+        [591.0, 1.0, 185.0],  # 4
+        [124.0, -127.0, 137.0],  # 5
+        [475.0, -235.0, 727.0],  # 6 (used by the pelvis search)
+        [380.0, -213.0, 388.0],  # 7 R_THI
+        [214.0, -223.0, 617.0],  # 8 labelled R_HIP (the hip is hidden)
+        [138.0, -129.0, 79.0],  # 9
+        [610.0, 36.0, 83.0],  # 10 L_TOE
+        [501.0, -17.0, 34.0],  # 11 L_HEE
+        [428.0, -189.0, 262.0],  # 12 R_KNE
+    ]
+    tracks = {
+        "L_HEE": ([495.0, -7.0, 32.0], [0.0, 0.0, 0.0], 1),
+        "L_TOE": ([607.0, 30.0, 83.0], [0.0, 0.0, 0.0], 1),
+        "R_KNE": ([351.0, -223.0, 401.0], [0.0, 0.0, 0.0], 1),
+        "R_TIB": ([407.0, -203.0, 276.0], [0.0, 0.0, 0.0], 1),
+    }
+    geo = _geometry(
+        1202.0,
+        {
+            ("ANK", "HEE"): 49.0,
+            ("ANK", "TOE"): 100.0,
+            ("HEE", "TOE"): 147.0,
+            ("KNE", "ANK"): 411.0,
+            ("HIP", "KNE"): 409.0,
+            ("THI", "KNE"): 139.0,
+            ("HIP", "THI"): 274.0,
+        },
+    )
+    sho, cam = [222.0, -166.0, 1190.0], [1955.0, -2761.0, 798.0]
+    assigned = {"R_SHO": 3, "R_HIP": 8, "L_ASI": 2, "R_ASI": 6}
+    a = _lower(blobs, tracks, assigned, geo, sho, "R", 1, frame=39, cam=cam)
+    assert a[MARKER_INDEX["R_THI"]] != 8
 
 
 def _high_wand_frame(tib_height: float) -> tuple[list[list[float]], dict, label.Geometry]:
