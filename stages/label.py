@@ -603,8 +603,9 @@ def _across_ray(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
 
     A blob's depth may be a layer in front of its marker (an arm, a wand's stick), which
     moves the blob along its viewing ray only. Dropping the e axis (the sagittal plane)
-    assumes level rays; from a camera above or below the marker, a layer 130 mm in front
-    also reads 40 mm high or low (a camera 1.2 m high, a knee 0.3 m high, 2.75 m away).
+    assumes level rays; from a camera above or below the marker the layer also moves the
+    blob in height (a camera 1.2 m high, a child's knee 0.33 m high, 2.75 m away: the arm
+    127 mm in front of it read 34 mm high).
     """
     q = fr.pos(idx)[cand]
     if fr.cam is None:
