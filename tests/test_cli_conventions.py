@@ -111,3 +111,13 @@ def test_traceback_only_with_debug(tmp_path: Path) -> None:
 def test_no_command_prints_help_and_fails(capsys: pytest.CaptureFixture[str]) -> None:
     assert main([]) == 2
     assert "COMMAND" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("bench", ["gait", "model", "mocap"])
+def test_benches_refuse_an_unknown_variant_before_running(
+    bench: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flag = "--variants" if bench == "mocap" else "--variant"
+    assert main(["bench", bench, flag, "child+moon"]) == 2
+    err = capsys.readouterr().err
+    assert "'moon'" in err and err.count("\n") == 1

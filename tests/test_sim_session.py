@@ -396,6 +396,34 @@ def test_reflectors_put_down_after_the_calibration() -> None:
         SimConfig(reflectors_from="walkway")
 
 
+def test_shoe_reflectors_ride_on_the_foot_and_stay_out_of_the_truth() -> None:
+    """``shoes``: a reflector in the foot's frame (forward heel -> toe, up, outward to the
+    ankle marker's side), saturating in the image where no marker is, never in the truth."""
+    from gaitflow.sim.variants import sim_config
+    from gaitflow.sim.walk import shoe_reflectors
+
+    m = np.zeros((1, 20, 3))
+    for side, y in (("L", 100.0), ("R", -100.0)):
+        m[0, MARKER_INDEX[f"{side}_HEE"]] = (0.0, y, 40.0)
+        m[0, MARKER_INDEX[f"{side}_TOE"]] = (200.0, y, 40.0)
+        # the lateral malleolus lies outward: +y for the left foot, -y for the right
+        m[0, MARKER_INDEX[f"{side}_ANK"]] = (50.0, y + np.sign(y) * 30.0, 80.0)
+    got = shoe_reflectors(m, [(60.0, -10.0, 45.0)], scale=2.0)
+    np.testing.assert_allclose(got[0], [[120.0, 190.0, 20.0], [120.0, -190.0, 20.0]])
+    with pytest.raises(ConfigError, match="shoe_reflectors"):
+        SimConfig(shoe_reflectors=((1.0, 2.0),))
+
+    cfg = sim_config("shoes")
+    plain = simulate_session(TRIAL, seed=7, config=sim_config("base"))
+    shod = simulate_session(TRIAL, seed=7, config=cfg)
+    a, ta = plain.recordings["static"].frame(0)
+    b, tb = shod.recordings["static"].frame(0)
+    np.testing.assert_array_equal(np.asarray(ta.position), np.asarray(tb.position))
+    assert np.asarray(tb.visible).shape == (20,)
+    # the near shoe's reflector saturates pixels that were not saturated without it
+    assert ((b.ir == SAT) & (a.ir < SAT)).sum() >= 4
+
+
 def _swings(events: list[dict], side: str, pas: str) -> np.ndarray:
     """Toe off to the next strike of one foot in one pass, s."""
     ev = [e for e in events if e["pass"] == pas and e["side"] == side]

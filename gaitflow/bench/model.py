@@ -25,14 +25,16 @@ from gaitflow.markers import MARKER_NAMES
 OK_MM = 30.0
 
 
-def check_trial(trial: str, seed: int, split: bool) -> dict[str, Any]:
-    """Run calibration + static of one simulated trial; score the model (see module doc)."""
-    from gaitflow.sim import SimConfig, simulate_session
+def check_trial(trial: str, seed: int, split: bool, variant: str = "base") -> dict[str, Any]:
+    """Run calibration + static of one simulated trial (simulator set-up ``variant``); score
+    the model (see module doc)."""
+    from gaitflow.sim import simulate_session
+    from gaitflow.sim.variants import sim_config
     from gaitflow.stages.graph import load
     from gaitflow.stages.inline import InlinePipeline
     from gaitflow.stages.model import FloorFrame
 
-    ses = simulate_session(trial, seed, SimConfig.quick())
+    ses = simulate_session(trial, seed, sim_config(variant))
     got: dict[str, list[Any]] = {"model": [], "calibration": []}
 
     def sink(stream: str, msg: Any) -> None:
@@ -71,18 +73,22 @@ def check_trial(trial: str, seed: int, split: bool) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     from gaitflow.sim import list_trials
+    from gaitflow.sim.variants import variant_changes
 
+    variant_changes(args.variant)  # an unknown name fails before any trial runs
     rows = []
     per: dict[str, Any] = {}
     for trial in args.trials or list_trials():
         for split in (False, True):
-            r = check_trial(trial, args.seed, split)
+            r = check_trial(trial, args.seed, split, args.variant)
             per[f"{trial}|split_cores={split}"] = r
             rows.append(
                 [trial, split, r["near_ok"], r["far_ok"], len(r["wrong"]), r["worst_ok_mm"]]
             )
     cols = ["trial", "split_cores", "near ok /10", "far ok", "wrong", "worst ok mm"]
-    emit(args, {"seed": args.seed, "trials": per}, [format_table("subject model", cols, rows)])
+    title = f"subject model, variant {args.variant}"
+    figures = {"seed": args.seed, "variant": args.variant, "trials": per}
+    emit(args, figures, [format_table(title, cols, rows)])
     return 0
 
 
@@ -96,5 +102,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--trials", nargs="*", default=None, help="bundled trial ids (default: all)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
+    p.add_argument(
+        "--variant",
+        default="base",
+        metavar="NAME[+NAME...]",
+        help="simulated set-up, as for `gaitflow bench gait --variant` (default base)",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)

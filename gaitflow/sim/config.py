@@ -7,6 +7,7 @@ and published Kinect v2 characteristics; each default says where it comes from.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -78,6 +79,11 @@ class SimConfig:
     # The first recording in which they are there: "calibration" (the room has them), or
     # "static" / "walk" (put down after the empty walkway was recorded).
     reflectors_from: str = "calibration"
+    # Marker-like reflectors on the subject's shoes (a reflective logo or strip), one sphere
+    # per entry and foot: (forward from the heel marker along the foot, up, outward to the
+    # foot's lateral side), mm, scaled with body_scale. They move with the feet, so clean
+    # never learns them, and they are never in the truth.
+    shoe_reflectors: tuple[tuple[float, float, float], ...] = ()
     # Subject.
     subject_id: str = "S01"
     arm_swing_gain: float = 0.7  # shoulder angle / contralateral thigh angle
@@ -128,6 +134,10 @@ class SimConfig:
             raise ConfigError(
                 f"SimConfig.reflectors_from={self.reflectors_from!r} is not one of"
                 f" {', '.join(RECORDING_KINDS)}"
+            )
+        if any(len(o) != 3 or not all(math.isfinite(v) for v in o) for o in self.shoe_reflectors):
+            raise ConfigError(
+                f"SimConfig.shoe_reflectors={self.shoe_reflectors!r}: each must be three finite mm"
             )
         if self.n_walks < 1:
             raise ConfigError(f"SimConfig.n_walks={self.n_walks} must be >= 1")

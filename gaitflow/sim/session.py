@@ -117,11 +117,12 @@ class Recording:
         fraction = [0.0] * n
         merged = [False] * n
         if self.kind in ("walk", "static"):
-            fraction = [float(v) for v in out.seen]
+            # the markers are the first n spheres (the shoes' reflectors follow, no truth)
+            fraction = [float(v) for v in out.seen[:n]]
             position = ses.renderer.to_cam(pos_w)
             pixel = ses.camera.project(position)
-            visible, occluded = visibility(out.seen, out.in_view)
-            streak = ses.renderer.to_cam(pose.spheres)  # (B, 20, 3) over the exposure
+            visible, occluded = visibility(out.seen[:n], out.in_view[:n])
+            streak = ses.renderer.to_cam(pose.spheres[:, :n])  # (B, 20, 3) over the exposure
             with np.errstate(invalid="ignore"):
                 streak_px = ses.camera.project(streak.reshape(-1, 3)).reshape(-1, n, 2)
                 radius_px = ses.camera.fx * cfg.marker_radius_mm / streak[..., 2]

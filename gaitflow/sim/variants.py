@@ -128,6 +128,12 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "the same five reflectors put down after the empty walkway was recorded: the"
         " calibration has not seen them, the static pose and the walks have",
     ),
+    "shoes": (
+        {"shoe_reflectors": ((60.0, -10.0, 45.0),)},
+        "a marker-like reflective patch on the outer side of each shoe, 60 mm ahead of the"
+        " heel marker (a trainer's logo or strip); it moves with the foot, so clean cannot"
+        " learn it",
+    ),
     "inview": (
         {"walk_margin_mm": -400.0},
         "a short walkway: each pass starts and ends 0.4 m inside the image, so the subject"

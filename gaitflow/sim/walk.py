@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from gaitflow.markers import MARKER_INDEX
 from gaitflow.sim.body import SEGMENT_INDEX, Body, Trial, build_body
 from gaitflow.sim.config import SimConfig
 from gaitflow.sim.render import FramePose
@@ -155,12 +156,45 @@ def _period(body: Body, around: float | None = None) -> float | None:
     return float(lags[best] * dt)
 
 
+def shoe_reflectors(markers: np.ndarray, offsets: Any, scale: float = 1.0) -> np.ndarray:
+    """Reflectors on both shoes, carried by each foot's heel, toe and ankle markers.
+
+    markers : (B, 20, 3) world mm. offsets : (K, 3) mm in the foot's frame: forward (heel
+    marker to toe marker), up (the world's vertical made normal to forward), outward (to
+    the side the ankle marker, on the lateral malleolus, lies). Returns (B, 2K, 3): the
+    left foot's K, then the right's; NaN where a foot marker is.
+    """
+    off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3) * scale
+    out = []
+    for side in ("L", "R"):
+        hee, toe, ank = (markers[:, MARKER_INDEX[f"{side}_{m}"]] for m in ("HEE", "TOE", "ANK"))
+        fwd = toe - hee
+        fwd = fwd / np.linalg.norm(fwd, axis=-1, keepdims=True)
+        up = np.array([0.0, 0.0, 1.0]) - fwd[:, 2:3] * fwd
+        up = up / np.linalg.norm(up, axis=-1, keepdims=True)
+        lat = np.cross(fwd, up)
+        lat = lat * np.sign(((ank - hee) * lat).sum(axis=-1, keepdims=True))
+        out.append(
+            hee[:, None]
+            + off[None, :, 0:1] * fwd[:, None]
+            + off[None, :, 1:2] * up[:, None]
+            + off[None, :, 2:3] * lat[:, None]
+        )
+    return np.concatenate(out, axis=1)
+
+
 def _blurred_pose(motion: Any, t_mid: float, exposure_s: float, blur_samples: int) -> FramePose:
     """A posed body's frame: markers at ``blur_samples`` instants over the exposure, the
     capsules and the markers (the ground truth's) at mid-exposure. ``motion`` has
-    ``markers_caps``, ``body`` and ``albedo`` (:class:`WalkMotion`, :class:`StaticMotion`)."""
+    ``markers_caps``, ``body``, ``albedo`` and ``cfg`` (:class:`WalkMotion`,
+    :class:`StaticMotion`). The shoes' reflectors (``SimConfig.shoe_reflectors``) follow the
+    markers as spheres of their own, never in the truth."""
     ts = t_mid + exposure_s * (np.arange(blur_samples) + 0.5) / blur_samples - exposure_s / 2
     m, _, _ = motion.markers_caps(ts)
+    cfg = motion.cfg
+    if cfg.shoe_reflectors:
+        extra = shoe_reflectors(m, cfg.shoe_reflectors, cfg.body_scale)
+        m = np.concatenate([m, extra], axis=1)
     mid, a, b = motion.markers_caps(np.array([t_mid]))
     return FramePose(m, a[0], b[0], motion.body.radius, motion.albedo, mid[0])
 
