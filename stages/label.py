@@ -44,10 +44,11 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    ones are completed with the far heel, toe and tibia (the far tibia only absorbs its
    blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
    track; a lone far blob only on last frame's track, and not when the other site's
-   live track lies nearer it in (forward, height)); ambiguity is judged on the
-   joint hypotheses, for the near labels and the far ones alike; a lone near foot marker needs a
-   fresh track. Foot tracks widen with the time unseen (``FOOT_SPEED_SIG``: swing onset);
-   an untracked far heel (toe) pays for a blob the near heel's (toe's) fresh track claims,
+   live track lies nearer it, in (forward, height) or across its viewing ray); ambiguity
+   is judged on the joint hypotheses, for the near labels and the far ones alike; a lone
+   near foot marker needs a fresh track. Foot tracks widen with the time unseen
+   (``FOOT_SPEED_SIG``: swing onset); an untracked far heel (toe) pays for a blob the near
+   heel's (toe's) fresh track claims,
    and a tracked thigh wand for one the knee's fresh track claims (judged across the
    blob's viewing ray, along which a layer in front moves it);
    without a fresh knee track, a blob at the thigh's length from the hip is left to the
@@ -623,11 +624,15 @@ def _off_ray(fr: _Frame, idx: int, cand: np.ndarray) -> np.ndarray:
     return ((_across_ray(fr, idx, cand) / fr.sig[idx]) ** 2).sum(axis=1)
 
 
-def _sagittal(fr: _Frame, idx: int, cand: np.ndarray) -> float:
-    """Sagittal (forward, height) distance, mm, of one candidate blob (1,) to marker
-    ``idx``'s prediction (depth left out)."""
-    d = (fr.pos(idx)[cand] - fr.pred[idx])[0, [0, 2]]
-    return float(np.hypot(*d))
+def _nearer(fr: _Frame, o: int, i: int, cand: np.ndarray) -> bool:
+    """Marker ``o``'s prediction lies nearer one candidate blob (1,) than marker ``i``'s, in
+    forward and height (depth left out) or across the blob's viewing ray
+    (:func:`_across_ray`): either suffices, as the two differ only where depths are unsure
+    (from a camera above the foot a blob's depth error also moves it in height; the tracks'
+    own depth errors leak into the offset across a descending ray)."""
+    sag = [float(np.hypot(*(fr.pos(m)[cand] - fr.pred[m])[0, [0, 2]])) for m in (o, i)]
+    ray = [float(np.linalg.norm(_across_ray(fr, m, cand)[0])) for m in (o, i)]
+    return sag[0] < sag[1] or ray[0] < ray[1]
 
 
 def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np.ndarray:
@@ -1469,14 +1474,14 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                 b = cand[tp[k] : tp[k] + 1]
                 if lone and not (fr.age[i] == 1 and _unary(fr, i, b)[0] < 4.0):
                     continue
-                # ... and the other site's track does not lie nearer it along the foot
-                # (forward, height): a half-hidden far foot's depth jumps, so the depth may
-                # favour the wrong track. Any live track counts, not only last frame's: as
+                # ... and the other site's track does not lie nearer it (``_nearer``): a
+                # half-hidden far foot's depth jumps, so the depth may favour the wrong
+                # track. Any live track counts, not only last frame's: as
                 # the near foot swings past the planted far one it hides the far heel, then
                 # the toe, and the heel's blob, back after a frame or two unseen, took the
                 # toe's label from the toe's last-frame track.
                 o = far_idx[1 - k]
-                if lone and fr.tracked[o] and _sagittal(fr, o, b) < _sagittal(fr, i, b):
+                if lone and fr.tracked[o] and _nearer(fr, o, i, b):
                     continue
                 chosen[i] = int(tp[k])
     _accept(fr, chosen, cand, geo, hip, gate)

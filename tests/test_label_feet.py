@@ -553,3 +553,51 @@ def test_a_far_heel_back_in_view_does_not_take_the_toes_label(heel_age: int) -> 
     a = _far_heel_back_frame(heel_age)
     assert a[MARKER_INDEX["L_TOE"]] != 9
     assert a[MARKER_INDEX["R_ANK"]] == 6 and a[MARKER_INDEX["R_TOE"]] == 8
+
+
+def test_a_far_toe_does_not_take_a_blob_the_heels_track_predicts_across_its_ray() -> None:
+    # btk_c3dorg_sample04_Matt, frame 374, walking back (near side L) at the image's left
+    # edge: the near foot unlabelled, blob 6 is its heel. As the lone far-foot blob it went
+    # to the far toe, whose track (one frame old) lies nearer it in forward and height than
+    # the far heel's (three frames old): 114 mm against 138 mm. Across the blob's viewing
+    # ray, which descends to the floor from the camera, the heel's track is 25 mm from it and
+    # the toe's 103 mm, so the toe label is left out.
+    blobs = [
+        [-307.0, -293.0, 602.0],  # 0 L_THI
+        [-515.0, -247.0, 804.0],  # 1 (used by the pelvis search)
+        [-381.0, -219.0, 204.0],  # 2 L_TIB
+        [-697.0, -142.0, 788.0],  # 3 (used by the pelvis search)
+        [-516.0, -198.0, 1300.0],  # 4 L_SHO
+        [-444.0, -185.0, 132.0],  # 5
+        [-486.0, -105.0, 88.0],  # 6 L_HEE
+        [-523.0, -247.0, 731.0],  # 7 L_HIP
+        [-358.0, -172.0, 107.0],  # 8
+    ]
+    tracks = {
+        "L_SHO": ([561.0, -186.0, 1311.0], [-53.0, 6.0, -6.0], 1),
+        "L_HIP": ([548.0, -242.0, 737.0], [-29.0, -4.0, -5.0], 1),
+        "L_THI": ([346.0, -290.0, 588.0], [-43.0, -2.0, 16.0], 1),
+        "L_KNE": ([279.0, -323.0, 452.0], [-46.0, -7.0, 20.0], 1),
+        "L_TIB": ([457.0, -209.0, 206.0], [-77.0, -7.0, -2.0], 1),
+        "L_ANK": ([531.0, -177.0, 145.0], [-85.0, -7.0, -13.0], 1),
+        "L_HEE": ([584.0, -127.0, 112.0], [-89.0, -3.0, -21.0], 1),
+        "L_TOE": ([439.0, -146.0, 108.0], [-104.0, 21.0, -10.0], 1),
+        "R_HEE": ([418.0, 59.0, 60.0], [-20.0, 35.0, -8.0], 3),
+        "R_TOE": ([348.0, -44.0, 111.0], [29.0, -56.0, 10.0], 1),
+    }
+    geo = _geometry(
+        1230.0,
+        {
+            ("ANK", "HEE"): 63.0,
+            ("ANK", "TOE"): 92.0,
+            ("HEE", "TOE"): 144.0,
+            ("KNE", "ANK"): 411.0,
+            ("HIP", "KNE"): 410.0,
+            ("THI", "KNE"): 128.0,
+            ("HIP", "THI"): 287.0,
+        },
+    )
+    sho, cam = [-525.0, -195.0, 1304.0], [-1955.0, -2761.0, 798.0]
+    assigned = {"L_SHO": 4, "L_HIP": 7, "L_ASI": 1, "R_ASI": 3}
+    a = _lower(blobs, tracks, assigned, geo, sho, "L", -1, frame=374, cam=cam)
+    assert a[MARKER_INDEX["R_TOE"]] != 6

@@ -75,7 +75,7 @@ def test_simulate_refuses_an_unknown_variant(tmp_path, capsys) -> None:
     args = ["simulate", "c3dorg_s00_vicon_CGM24", "--out", str(out)]
     assert main([*args, "--variant", "moon"]) == 2
     assert "'moon'" in capsys.readouterr().err
-    # combined set-ups: a clash names both parts' key, and nothing is written either
+    # combined set-ups whose parts set one thing differently are refused, naming it
     assert main([*args, "--variant", "d20+d30"]) == 2
     assert "marker_diameter_mm" in capsys.readouterr().err
     assert not out.exists()

@@ -162,7 +162,7 @@ def shoe_reflectors(markers: np.ndarray, offsets: Any, scale: float = 1.0) -> np
     markers : (B, 20, 3) world mm. offsets : (K, 3) mm in the foot's frame: forward (heel
     marker to toe marker), up (the world's vertical made normal to forward), outward (to
     the side the ankle marker, on the lateral malleolus, lies). Returns (B, 2K, 3): the
-    left foot's K, then the right's; NaN where a foot marker is.
+    left foot's K, then the right's; NaN where a foot marker is missing.
     """
     off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3) * scale
     out = []
