@@ -48,10 +48,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    is judged on the joint hypotheses, for the near labels and the far ones alike; a lone
    near foot marker needs a fresh track. Foot tracks widen with the time unseen
    (``FOOT_SPEED_SIG``: swing onset); an untracked far heel (toe) pays for a blob the near
-   heel's (toe's) fresh track claims,
-   and a tracked thigh wand for one the knee's fresh track claims (judged across the
-   blob's viewing ray, along which a layer in front moves it);
-   without a fresh knee track, a blob at the thigh's length from the hip is left to the
+   heel's (toe's) fresh track claims, and a tracked thigh wand for one the knee's fresh
+   track claims (judged across the blob's viewing ray, along which a layer in front moves
+   it); without a fresh knee track, a blob at the thigh's length from the hip is left to the
    limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
    ANK; THI and TIB on their segments, ``_on_segment``, up to the subject's standing
    offset off the segment's line; the thigh wand above the knee marker, always; near knee
@@ -555,7 +554,7 @@ class _Frame:
     pred: np.ndarray  # (20, 3) prediction (f, e, h)
     sig: np.ndarray  # (20, 3) prediction sigma
     near: str
-    tracked: np.ndarray  # (20,) bool, prediction comes from a fresh track
+    tracked: np.ndarray  # (20,) bool, prediction from a live track (<= track_age missed)
     ambiguity: float
     age: np.ndarray  # (20,) frames since each marker was last labelled
     publish_asis_psis: bool = True
@@ -1476,10 +1475,10 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                     continue
                 # ... and the other site's track does not lie nearer it (``_nearer``): a
                 # half-hidden far foot's depth jumps, so the depth may favour the wrong
-                # track. Any live track counts, not only last frame's: as
-                # the near foot swings past the planted far one it hides the far heel, then
-                # the toe, and the heel's blob, back after a frame or two unseen, took the
-                # toe's label from the toe's last-frame track.
+                # track. Any live track counts, not only last frame's: as the near foot
+                # swings past the planted far one it hides the far heel, then the toe, and
+                # the heel's blob, back after a frame or two unseen, took the toe's label
+                # from the toe's last-frame track.
                 o = far_idx[1 - k]
                 if lone and fr.tracked[o] and _nearer(fr, o, i, b):
                     continue
