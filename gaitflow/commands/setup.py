@@ -49,6 +49,15 @@ class StatusConsole:
     def __init__(self, markers_expected: int = 4) -> None:
         self.markers_expected = markers_expected
         self.last: tuple[str, str, int] | None = None
+        self.final = ""  # the calibration record's status, once it arrived
+
+    def feed(self, stream: str, msg: Any) -> list[str]:
+        """The lines for one ``calstatus`` or ``calibration`` message."""
+        if stream == "calibration":
+            self.final = msg.status
+            return self.outcome_lines(msg)
+        line = self.status_line(msg)
+        return [] if line is None else [line]
 
     def status_line(self, msg: Any) -> str | None:
         """The line for a ``CalibrationStatus``, or None when the advice did not change
@@ -96,17 +105,10 @@ def replay_session(root: Path, out: Callable[[str], None] = print) -> str:
         raise InputError(root, "no calibration/ recording in this session folder")
     expected = int(reader.camera_doc.get("calibration_markers", 4))
     console = StatusConsole(expected)
-    status = ""
 
     def sink(stream: str, msg: Any) -> None:
-        nonlocal status
-        if stream == "calstatus":
-            line = console.status_line(msg)
-            if line is not None:
-                out(line)
-        elif stream == "calibration":
-            status = msg.status
-            for line in console.outcome_lines(msg):
+        if stream in ("calstatus", "calibration"):
+            for line in console.feed(stream, msg):
                 out(line)
 
     params = session_stage_params(reader.camera_doc, None)
@@ -114,7 +116,7 @@ def replay_session(root: Path, out: Callable[[str], None] = print) -> str:
     for raw in iter_raw_frames(reader, "calibration"):
         pipe.push(raw)
     pipe.finish()
-    return status
+    return console.final
 
 
 def listen(
@@ -135,7 +137,6 @@ def listen(
 
     console = StatusConsole(markers)
     lock = threading.Lock()
-    final: list[str] = []
     malformed = 0
     stop = stop or threading.Event()
 
@@ -150,13 +151,7 @@ def listen(
                 print(f"setup: malformed {stream} message on {key}: {exc}", file=sys.stderr)
                 return
             with lock:
-                if stream == "calstatus":
-                    line = console.status_line(msg)
-                    lines = [] if line is None else [line]
-                else:
-                    final.append(msg.status)
-                    lines = console.outcome_lines(msg)
-                for line in lines:
+                for line in console.feed(stream, msg):
                     out(line)
 
         return on_sample
@@ -168,12 +163,12 @@ def listen(
         if t_end is not None and time.monotonic() >= t_end:
             break
         with lock:
-            if final:
+            if console.final:
                 break
         stop.wait(0.05)
     if malformed:
         print(f"setup: {malformed} malformed messages skipped", file=sys.stderr)
-    return 0 if not final or final[-1] == "Done" else 1
+    return 0 if console.final in ("", "Done") else 1
 
 
 def run(args: argparse.Namespace) -> int:
