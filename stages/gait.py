@@ -294,6 +294,8 @@ class GaitState:
     memo: tuple[Mapping[bytes, Any], ...] = ()
     # the resampled markers of the last analysis of the whole trial (``analyse(series=)``)
     series: Mapping[str, gc.Resampled] | None = None
+    # a calibration record that is not Done: warned in every result that rests on it
+    calibration_note: str = ""
 
 
 @dataclass(frozen=True)
@@ -812,7 +814,7 @@ def _analyse_trial(state: GaitState) -> TrialAnalysis:
     """The full analysis of the open trial's frames, with what earlier analyses kept."""
     if state.plane is None:  # the callers check first: a trial without a floor is not analysed
         raise StageError("gait", f"trial {state.frames[0].header.trial!r}: no floor plane")
-    return analyse(
+    a = analyse(
         state.frames,
         state.plane,
         state.start,
@@ -821,6 +823,9 @@ def _analyse_trial(state: GaitState) -> TrialAnalysis:
         memo=state.memo,
         series=_series(state),
     )
+    if state.calibration_note:
+        a = dataclasses.replace(a, warnings=[*a.warnings, state.calibration_note])
+    return a
 
 
 def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
@@ -831,7 +836,9 @@ def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
     out: list[Message] = []
     trial = state.frames[0].header.trial
     if state.plane is None:
-        doc = empty_results(state.params.get("session", ""), trial, 30.0, "no floor calibration")
+        note = state.calibration_note
+        why = "no floor calibration" + (f": {note}" if note else "")
+        doc = empty_results(state.params.get("session", ""), trial, 30.0, why)
         out.append(TrialSummary.follow(last, results=doc, warnings=doc["warnings"]))
         return _reset(state), out, []
     a = _analyse_trial(state)
@@ -880,11 +887,21 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
     if cal is not None and not state.frames:
         plane = np.asarray(cal.floor_plane, dtype=float)
         ok = plane.shape == (4,) and np.all(np.isfinite(plane)) and np.linalg.norm(plane[:3]) > 0
+        # A record that is not Done may still carry a plane (a marker off it, a quad that
+        # is not convex): the figures then rest on a floor the operator was told to redo.
+        note = ""
+        if cal.status != "Done":
+            why = f" ({cal.message})" if cal.message else ""
+            note = (
+                f"the calibration record says {cal.status}{why}: its floor plane and walking "
+                "line were used; check the camera set-up (gaitflow setup --session)"
+            )
         state = dataclasses.replace(
             state,
             plane=plane if ok else None,
             start=np.asarray(cal.start, dtype=float),
             end=np.asarray(cal.end, dtype=float),
+            calibration_note=note,
         )
         lat = None
         if ok and state.params["knee_plane"] == "sagittal":

@@ -103,6 +103,32 @@ def test_subject_never_in_view_gives_an_empty_result_with_a_warning(session):
     assert validation_errors(doc) == []
 
 
+def test_a_calibration_that_is_not_done_is_warned_in_every_result(session):
+    import dataclasses
+
+    _, _, frames, cal = session
+    # a record with a usable plane but an operator status to redo (a marker off the plane)
+    redo = dataclasses.replace(cal, status="Replace Markers", message="marker 3 is 41 mm off")
+    outs = run_stage(frames, redo)
+    summaries = [o for o in outs if o.STREAM == "summary"]
+    assert {o.results["scope"] for o in summaries} == {"pass", "trial"}
+    for o in summaries:
+        assert any(
+            w.startswith("the calibration record says Replace Markers (marker 3 is 41 mm off)")
+            for w in o.results["warnings"]
+        )
+        assert any("Replace Markers" in w for w in o.warnings)
+        assert validation_errors(o.results) == []
+    # the figures rest on the same plane: only the warning differs
+    plain = [o.results for o in run_stage(frames, cal) if o.STREAM == "summary"]
+    assert [d["events"] for d in plain] == [o.results["events"] for o in summaries]
+    assert not any("calibration record" in w for d in plain for w in d["warnings"])
+    # without a usable plane the trial is not analysed, and the warning says why
+    none = dataclasses.replace(redo, floor_plane=np.full(4, np.nan))
+    (doc,) = [o.results for o in run_stage(frames[:30], none) if o.STREAM == "summary"]
+    assert doc["warnings"][0].startswith("no floor calibration: the calibration record says")
+
+
 def test_a_new_trial_closes_the_open_one(session):
     _, _, frames, cal = session
     import dataclasses
