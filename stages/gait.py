@@ -275,6 +275,10 @@ class FrameRec:
     record_t: float = float("nan")
 
 
+# What a clinician does about a calibration that is not Done (results' warnings).
+CHECK_SETUP = "check the camera set-up (gaitflow setup --session)"
+
+
 @dataclass(frozen=True)
 class GaitState:
     """The open trial: its frames so far and what was already published."""
@@ -294,7 +298,7 @@ class GaitState:
     memo: tuple[Mapping[bytes, Any], ...] = ()
     # the resampled markers of the last analysis of the whole trial (``analyse(series=)``)
     series: Mapping[str, gc.Resampled] | None = None
-    # a calibration record that is not Done: warned in every result that rests on it
+    # a calibration record that is not Done, its status and message: warned in every result
     calibration_note: str = ""
 
 
@@ -824,7 +828,8 @@ def _analyse_trial(state: GaitState) -> TrialAnalysis:
         series=_series(state),
     )
     if state.calibration_note:
-        a = dataclasses.replace(a, warnings=[*a.warnings, state.calibration_note])
+        used = ": its floor plane and walking line were used; " + CHECK_SETUP
+        a = dataclasses.replace(a, warnings=[*a.warnings, state.calibration_note + used])
     return a
 
 
@@ -837,7 +842,7 @@ def _close(state: GaitState) -> tuple[GaitState, list[Message], list[list]]:
     trial = state.frames[0].header.trial
     if state.plane is None:
         note = state.calibration_note
-        why = "no floor calibration" + (f": {note}" if note else "")
+        why = "no floor calibration" + (f": {note}; {CHECK_SETUP}" if note else "")
         doc = empty_results(state.params.get("session", ""), trial, 30.0, why)
         out.append(TrialSummary.follow(last, results=doc, warnings=doc["warnings"]))
         return _reset(state), out, []
@@ -892,10 +897,7 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
         note = ""
         if cal.status != "Done":
             why = f" ({cal.message})" if cal.message else ""
-            note = (
-                f"the calibration record says {cal.status}{why}: its floor plane and walking "
-                "line were used; check the camera set-up (gaitflow setup --session)"
-            )
+            note = f"the calibration record says {cal.status}{why}"
         state = dataclasses.replace(
             state,
             plane=plane if ok else None,
