@@ -29,6 +29,8 @@ from typing import Any
 from gaitflow.commands._bus_args import add_bus_args, bus_config, stop_on_signals
 from gaitflow.errors import InputError, SchemaError
 
+# What the operator does once the camera is set (the live Done and the record's outcome).
+NEXT_STEP = "record the subject's static pose"
 # What each status asks of the operator, in plain words (the record's message adds numbers).
 ADVICE = {
     "Uninitialized": "place the next floor marker on the walkway and step out of view",
@@ -39,7 +41,7 @@ ADVICE = {
     "Tilt Up": "tilt the camera up",
     "Pan Left": "turn the camera left",
     "Pan Right": "turn the camera right",
-    "Done": "the camera is set: record the subject's static pose next",
+    "Done": f"the camera is set: {NEXT_STEP} next",
 }
 
 
@@ -87,7 +89,7 @@ class StatusConsole:
             f"  camera pose kept in the record: tilt {num(rec.tilt_deg, '+.1f')} deg, pan "
             f"{num(rec.pan_deg, '+.1f')} deg, walkway centre {num(rec.offset_mm, '+.0f')} mm "
             f"off the optical axis; floor plane fit {num(rec.plane_rms_mm, '.1f')} mm rms",
-            "  next: record the subject's static pose",
+            f"  next: {NEXT_STEP}",
         ]
 
 
