@@ -30,6 +30,7 @@ Y down, Z forward, right-handed).
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -122,6 +123,12 @@ HIP_DROP_FACTOR = 2.0
 # Ankle, heel and toe markers of a standing subject sit below this fraction of H (the
 # ankle at 0.04-0.07 H on the trials), a tibia wand above it (0.10-0.28 H).
 FOOT_BAND_FRAC = 0.085
+# One foot's heel, ankle and toe markers lie within FOOT_SPAN_FRAC * H of each other along
+# the walking axis: heel to toe is 0.11-0.17 H on the bundled trials (and the child and
+# crouch set-ups), 0.13 H in the template; the margin takes the heel's silhouette depth
+# error and larger shoes. A reflector lying on the walkway ahead of a toe (0.26 H from the
+# heel on `far+strays_late`) is beyond it.
+FOOT_SPAN_FRAC = 0.24
 
 # The floor frame's fallback (FloorFrame.from_record), declared once for every stage that
 # builds one.
@@ -331,7 +338,10 @@ def label_pose(
     template's knee height, THI the highest above it; blobs below it join the shank band.
     Shank/foot band: TIB is the highest near blob above the ankle band; of the low near
     blobs TOE is the foremost, ANK and HEE the rest by the template's forward and height
-    gaps; the far heel and toe are the rearmost and foremost low far blobs.
+    gaps; the far heel and toe are the rearmost and foremost low far blobs. Each foot's
+    blobs are the largest group within FOOT_SPAN_FRAC * H along the walking axis (the near
+    foot's nearest the tibia marker, the far foot's nearest the near foot); low blobs
+    outside it are reflectors on the floor.
     """
     del gate_sigma
     out = np.full(20, -1)
@@ -452,8 +462,14 @@ def label_pose(
         for i in low_all:
             if is_near[i] and e[i] > e_foot + FAR_FOOT_FRAC * H:
                 is_near[i] = False
-    near_low = sorted((i for i in low_all if is_near[i]), key=lambda i: f[i])
-    far_low = sorted((i for i in low_all if not is_near[i]), key=lambda i: f[i])
+    # Each foot is one group within a foot's length; a low blob outside its side's group
+    # is a reflector on the floor, not a marker (the group nearest the shank above it).
+    shank_f = f[max(shank, key=lambda i: h[i])] if shank else None
+    near_low = _one_foot([i for i in low_all if is_near[i]], f, FOOT_SPAN_FRAC * H, shank_f)
+    near_low = _fit_foot(near_low, f, layout * (H / H0), ("HEE", "ANK", "TOE"))
+    near_mid = 0.5 * (f[near_low[0]] + f[near_low[-1]]) if near_low else shank_f
+    far_low = _one_foot([i for i in low_all if not is_near[i]], f, FOOT_SPAN_FRAC * H, near_mid)
+    far_low = _fit_foot(far_low, f, layout * (H / H0), ("HEE", "TOE"))
     if near_low:
         put(f"{near}_TOE", near_low[-1])
         rest = near_low[:-1]
@@ -483,6 +499,41 @@ def label_pose(
         elif ref_h is not None:
             put(f"{far}_HEE", i)
     return out
+
+
+def _one_foot(idx: list[int], f: np.ndarray, span: float, centre: float | None) -> list[int]:
+    """The largest group of blobs ``idx`` within ``span`` of each other in forward position
+    ``f``, sorted by it; of equal groups the one whose middle is nearest ``centre`` (the
+    rearmost without one)."""
+    order = sorted(idx, key=lambda i: f[i])
+    best: list[int] = []
+    best_d = np.inf
+    for a in range(len(order)):
+        b = a
+        while b + 1 < len(order) and f[order[b + 1]] - f[order[a]] <= span:
+            b += 1
+        group = order[a : b + 1]
+        d = 0.0 if centre is None else abs(0.5 * (f[group[0]] + f[group[-1]]) - centre)
+        if len(group) > len(best) or (len(group) == len(best) and d < best_d):
+            best, best_d = group, d
+    return best
+
+
+def _fit_foot(
+    idx: list[int], f: np.ndarray, layout: np.ndarray, sites: tuple[str, ...]
+) -> list[int]:
+    """Of more blobs of one foot than its visible ``sites`` (rearmost first, the toe last),
+    the ones whose forward distances to the foremost best fit the template's (``layout``
+    scaled to the subject), sorted by forward position ``f``; the others are reflectors on
+    the floor."""
+    tpl = [float(layout[SITES.index(s), 0]) for s in sites]
+
+    def misfit(t: tuple[int, ...]) -> float:
+        return sum(abs(f[t[-1]] - f[t[k]] - (tpl[-1] - tpl[k])) for k in range(len(t) - 1))
+
+    if len(idx) <= len(sites):
+        return idx
+    return list(min(itertools.combinations(idx, len(sites)), key=misfit))
 
 
 def consensus_pose(

@@ -177,3 +177,49 @@ def test_consensus_needs_a_third_of_the_frames() -> None:
         ref = consensus_pose(frames, 1, LAYOUT)
         assert np.isfinite(ref[MARKER_INDEX["R_PSI"]]).all()
         assert np.isfinite(ref[MARKER_INDEX["L_PSI"]]).all() == kept
+
+
+@pytest.mark.parametrize(
+    ("site", "forward", "nearer"),
+    [
+        ("R_TOE", 80.0, 190.0),
+        ("R_TOE", 140.0, 190.0),
+        ("R_TOE", 120.0, 0.0),
+        ("R_HEE", -100.0, 0.0),
+    ],
+)
+def test_a_reflector_on_the_floor_beside_the_near_foot_is_no_foot_marker(
+    site: str, forward: float, nearer: float
+) -> None:
+    # A marker left on the walkway, 80-140 mm ahead of the near toe or 100 mm behind the
+    # heel, measured 43 mm high (its depth biased nearer, as on far+strays_late, where the
+    # subject model took it for the toe and the toe for the ankle on all five trials).
+    P = _pose()
+    stray = P[MARKER_INDEX[site]] + np.array([forward, -nearer, 0.0])
+    stray[2] = 43.0
+    blobs = np.vstack([P[SEEN], stray])
+    idx = label_pose(blobs, 1, LAYOUT)
+    for name in ("R_ANK", "R_HEE", "R_TOE", "L_HEE", "L_TOE", "R_TIB"):
+        assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+    assert len(SEEN) not in idx
+
+
+def test_a_reflector_on_the_floor_beyond_the_far_foot_is_no_far_marker() -> None:
+    # Behind the far toe in depth and 90 mm ahead of it: a far blob, but no far heel.
+    P = _pose()
+    stray = P[MARKER_INDEX["L_TOE"]] + np.array([90.0, 150.0, -20.0])
+    idx = label_pose(np.vstack([P[SEEN], stray]), 1, LAYOUT)
+    assert idx[MARKER_INDEX["L_HEE"]] == SEEN.index(MARKER_INDEX["L_HEE"])
+    assert idx[MARKER_INDEX["L_TOE"]] == SEEN.index(MARKER_INDEX["L_TOE"])
+    assert len(SEEN) not in idx
+
+
+def test_a_reflector_beyond_a_foots_length_is_no_toe_when_heel_and_ankle_merge() -> None:
+    # Heel and ankle one blob (no heel), so three low near blobs: the toe's is the one
+    # within a foot's length of the ankle's, not the reflector 250 mm ahead of the toe.
+    P = _pose()
+    P[MARKER_INDEX["R_HEE"]] = np.nan
+    stray = P[MARKER_INDEX["R_TOE"]] + np.array([250.0, -100.0, 0.0])
+    idx = label_pose(np.vstack([P[SEEN], stray]), 1, LAYOUT)
+    assert idx[MARKER_INDEX["R_TOE"]] == SEEN.index(MARKER_INDEX["R_TOE"])
+    assert len(SEEN) not in idx
