@@ -134,6 +134,17 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         " heel marker (a trainer's logo or strip); it moves with the foot, so clean cannot"
         " learn it",
     ),
+    "dim": (
+        {"marker_gain": 0.8},
+        "markers returning a fifth of the default's light (worn, dusty or another make):"
+        " their cores saturate only nearer than 2.2 m, on the walking line they reach 2/3 of"
+        " full scale",
+    ),
+    "faint": (
+        {"marker_gain": 0.3},
+        "markers returning under a tenth of the default's light: a quarter of full scale on"
+        " the walking line, 7 times the skin's IR (outside what the method is built for)",
+    ),
     "inview": (
         {"walk_margin_mm": -400.0},
         "a short walkway: each pass starts and ends 0.4 m inside the image, so the subject"
