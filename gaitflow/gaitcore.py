@@ -119,13 +119,15 @@ def fill_from_segment(
 ) -> np.ndarray:
     """Fill a marker's interior gaps from the segment it rides on (a rigid-body fill).
 
-    Over a gap of ``x`` whose segment markers ``a`` and ``b`` are seen from the sample before
-    it to the one after, ``x`` keeps its coordinates in the segment's frame (u along a -> b,
-    v = lateral x u, w = u x v): they are interpolated linearly in time between the gap's
-    two ends and mapped back through each frame's own segment. Gaps longer than
-    ``max_gap_s`` (measured as :func:`fill_gaps` does), touching either end of the series,
-    with the segment unseen in any of their frames or along ``lateral`` are left as they
-    are, for :func:`fill_gaps`.
+    Over a gap of ``x``, ``x`` keeps its coordinates in the segment's frame (u along the
+    segment markers a -> b, v = lateral x u, w = u x v): they are interpolated linearly in
+    time between the gap's two ends and mapped back through each frame's own segment. Each
+    end's coordinates come from the nearest sample outside the gap, within ``max_gap_s`` of
+    it, where ``x`` and the segment are both seen (the sample next to the gap, unless the
+    segment is unseen there). Frames of the gap where the segment is unseen (or along
+    ``lateral``), and gaps longer than ``max_gap_s`` (measured as :func:`fill_gaps` does),
+    touching either end of the series or without such a sample at either end, are left as
+    they are, for :func:`fill_gaps`.
 
     Why: :func:`fill_gaps` carries the marker's own velocity at the gap's ends into it. In
     terminal swing the ankle comes to rest within a few frames, so the Bezier over a
@@ -157,18 +159,24 @@ def fill_from_segment(
     v = v / np.where(vn > 0.02, vn, np.nan)[:, None]
     basis = np.stack((u, v, np.cross(u, v)), axis=1)  # (F, 3, 3): rows u, v, w
     seen = np.isfinite(v).all(axis=1)
+    ref = seen & ~missing_rows(out)
     nt = len(t)
     for g0, g1 in runs(missing_rows(out)):
         lo, hi = g0 - 1, g1 + 1
         if lo < 0 or hi >= nt or not t[hi] - t[lo] <= max_gap_s + 1e-9:
             continue
-        if not seen[lo : hi + 1].all():
+        # a tibia marker unlabelled at the gap's edge need not forfeit the fill: the
+        # ankle's place on the shank is the same a frame or two further out
+        before = np.flatnonzero(ref[:g0] & (t[:g0] >= t[lo] - max_gap_s - 1e-9))
+        after = g1 + 1 + np.flatnonzero(ref[g1 + 1 :] & (t[g1 + 1 :] <= t[hi] + max_gap_s + 1e-9))
+        if before.size == 0 or after.size == 0:
             continue
-        ends = np.einsum("kij,kj->ki", basis[[lo, hi]], out[[lo, hi]] - a[[lo, hi]])
-        s = ((t[g0 : g1 + 1] - t[lo]) / (t[hi] - t[lo]))[:, None]
+        r0, r1 = int(before[-1]), int(after[0])
+        ends = np.einsum("kij,kj->ki", basis[[r0, r1]], out[[r0, r1]] - a[[r0, r1]])
+        k = np.arange(g0, g1 + 1)[seen[g0 : g1 + 1]]
+        s = ((t[k] - t[r0]) / (t[r1] - t[r0]))[:, None]
         c = (1.0 - s) * ends[0] + s * ends[1]
-        sl = slice(g0, g1 + 1)
-        out[sl] = a[sl] + np.einsum("ki,kij->kj", c, basis[sl])
+        out[k] = a[k] + np.einsum("ki,kij->kj", c, basis[k])
     return out
 
 

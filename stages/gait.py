@@ -32,7 +32,7 @@ Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
    before filling, a frame's hip, knee or ankle sample that makes the thigh or the shank
    (or both: the knee) depart from its median length (``segment_tol``) is dropped
    (:func:`gaitflow.gaitcore.chain_outliers`); then an ankle gap is filled from the knee
-   and tibia markers seen through it, the ankle held in the shank's frame
+   and tibia markers in its frames where they are seen, the ankle held in the shank's frame
    (``segment_fill``, :func:`gaitflow.gaitcore.fill_from_segment`; the Bezier fills the
    rest); after filling, the knee angle is unknown where a length still departs.
 
@@ -90,8 +90,8 @@ PARAMS = ParamSet(
             bool,
             True,
             "",
-            "an ankle gap is filled first from the knee and tibia markers seen through it"
-            " (the shank's frame), the Bezier only where they are not",
+            "an ankle gap is filled first from the knee and tibia markers (the shank's frame)"
+            " in its frames where they are seen, the Bezier only where they are not",
         ),
         Param(
             "event_gap_s",

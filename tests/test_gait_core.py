@@ -569,14 +569,26 @@ def test_an_ankle_gap_is_filled_from_the_shank_it_rides_on():
     np.testing.assert_allclose(out, ank_true, atol=1e-6)  # rigid: exact
     bezier, _ = gc.fill_gaps(t, ank, max_gap_s=0.3)
     assert np.max(np.linalg.norm(bezier[4:11] - ank_true[4:11], axis=1)) > 20.0
-    # left for the Bezier: a gap longer than max_gap_s, one where the tibia is unseen, one
-    # touching the series' end
+    # left for the Bezier: a gap longer than max_gap_s, a frame where the tibia is unseen,
+    # one touching the series' end
     np.testing.assert_array_equal(
         np.isnan(gc.fill_from_segment(t, ank, kne, tib, lateral, max_gap_s=0.2)[4:11]), True
     )
     tib_hole = tib.copy()
     tib_hole[7] = np.nan
-    assert np.isnan(gc.fill_from_segment(t, ank, kne, tib_hole, lateral)[4:11]).all()
+    holed = gc.fill_from_segment(t, ank, kne, tib_hole, lateral)
+    assert np.isnan(holed[7]).all()
+    np.testing.assert_allclose(holed[[4, 5, 6, 8, 9, 10]], ank_true[[4, 5, 6, 8, 9, 10]], atol=1e-6)
+    # the tibia lost at the gap's edge too (frames 3-4): the end is taken two frames out
+    edge = tib.copy()
+    edge[3:5] = np.nan
+    filled = gc.fill_from_segment(t, ank, kne, edge, lateral)
+    assert np.isnan(filled[4]).all()
+    np.testing.assert_allclose(filled[5:11], ank_true[5:11], atol=1e-6)
+    # ... but not without a sample of both before the gap
+    far_edge = tib.copy()
+    far_edge[:5] = np.nan
+    assert np.isnan(gc.fill_from_segment(t, ank, kne, far_edge, lateral, max_gap_s=0.3)[4:11]).all()
     tail = ank_true.copy()
     tail[15:] = np.nan
     assert np.isnan(gc.fill_from_segment(t, tail, kne, tib, lateral)[15:]).all()
