@@ -445,6 +445,7 @@ class LabelState:
     sho_cov: np.ndarray | None = None
     sho_missed: int = 0
     sho_lost: int = -(10**9)  # frame in which the last shoulder track ended for misses
+    sho_lost_direction: int = 0  # that track's walking direction (0: none yet)
     direction: int = 0
     flip_count: int = 0
     walked: bool = False
@@ -485,6 +486,7 @@ def _end_shoulder(st: LabelState, frame_idx: int) -> LabelState:
             direction=0,
             walked=False,
             sho_lost=frame_idx,
+            sho_lost_direction=st.direction,
         )
     )
 
@@ -918,8 +920,15 @@ def label_frame(
             # window before). Not at a pass's first sight: a blob entering
             # the image at its edge moves with its visible part.
             da = _shoulder_move(floor[sho_blob], prev_q, p["sho_reach"] * H)
+            a_frac = float(st.sho_x[0]) / ff.length
             if abs(da) > p["dir_speed"] * dt:
                 direction = 1 if da > 0 else -1
+            elif st.sho_lost_direction and 0.25 < a_frac < 0.75:
+                # The blob was not in the last frame (missed with the track): in the
+                # middle of the walkway nobody turns round within restart_frames, so the
+                # lost track's direction stands (a child's shoulder missed three frames
+                # running restarted facing the wrong way for 7 frames).
+                direction = st.sho_lost_direction
     elif abs(va) > p["dir_speed"] and np.sign(va) != direction:
         flips += 1
         if flips >= p["flip_frames"]:

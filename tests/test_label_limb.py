@@ -75,21 +75,22 @@ def test_shoulder_move_matches_in_3d_and_ignores_the_far_shoulder() -> None:
     assert label._shoulder_move(np.array([1400.0, 2.0, 1400.0]), prev, 140.0) == 0.0
 
 
-def _restart(move: float | None, lost: bool = True) -> int:
-    """Direction after one frame in which the shoulder shows at 80 % of the walkway (its
-    far half, so "toward the far end" says -1), with a hip, thigh and knee below it.
+def _restart(move: float | None, lost: bool = True, at: float = 0.8, heading: int = 1) -> int:
+    """Direction after one frame in which the shoulder shows at ``at`` of the walkway (80 %:
+    its far half, so "toward the far end" says -1), with a hip, thigh and knee below it.
 
-    ``lost``: a shoulder track coasted 5 frames (``max_missed``) far from it and ends in
-    this frame; else there was no track (a pass's first sight). ``move``: how far along the
-    line the blobs moved since the last frame, mm (None: no last frame).
+    ``heading``: the walking direction before. ``lost``: a shoulder track coasted 5 frames
+    (``max_missed``) far from it and ends in this frame; else there was no track (a pass's
+    first sight). ``move``: how far along the line the blobs moved since the last frame, mm
+    (None: no last frame).
     """
     geo = label.Geometry.from_model(None)
     H = geo.sho_h
     ff = FloorFrame.from_record(calibration_record(), 800.0)
-    a = 0.8 * ff.length
+    a = at * ff.length
     body = [(a, 0.0, H)] + [(a - 30.0, 60.0, h * H) for h in (0.7, 0.5, 0.35)]
     st = label.init(label.PARAMS.resolve({}))
-    st = replace(st, trial="walk-01", frame=20, direction=1, walked=True)
+    st = replace(st, trial="walk-01", frame=20, direction=heading, walked=True)
     if lost:
         x = np.array([a - 900.0, -600.0, H, 900.0, -900.0, 0.0])  # drifted far off
         st = replace(st, sho_x=x, sho_cov=np.eye(6) * 100.0**2, sho_missed=5)
@@ -126,6 +127,16 @@ def test_a_track_lost_the_frame_before_restarts_in_the_direction_of_the_move() -
     # Longer ago than max_missed frames: a new pass, the far-end guess.
     st = replace(st, sho_lost=10)
     assert label.label_frame(st, pos, 21, ff, geo)[0].direction == -1
+
+
+def test_a_track_lost_mid_walkway_with_its_blob_restarts_in_the_lost_direction() -> None:
+    # The shoulder blob was missed in the last frame too (no move to measure): in the
+    # middle of the walkway the lost track's direction (+1) stands, where the far-end guess
+    # (-1 from the walkway's middle on) named the wrong side (a child's walk, 7 frames).
+    assert _restart(move=None, at=0.55) == 1
+    assert _restart(move=None, at=0.3, heading=-1) == -1
+    # Near an end the subject may have turned: the far-end guess.
+    assert _restart(move=None, at=0.8) == -1
 
 
 def test_a_pass_first_sight_keeps_the_far_end_guess() -> None:
