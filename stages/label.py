@@ -257,6 +257,10 @@ MISS_COST = 9.0  # a missing label costs as much as a 3-sigma fit
 # A blob whose radius exceeds this many times the frame's median is no marker (_huge).
 HUGE_BLOB = 3.0
 HIP_DROP = 0.25  # share of the standing ASI/PSI-to-HIP drop the hip keeps below them
+# The middle of the walkway (fractions of its length L): a shoulder track restarting here
+# within restart_frames of the last one's end, with no move to measure, keeps its direction
+# (nobody turns round mid-walkway in a third of a second; near the ends they may have).
+MID_WALKWAY = (0.25, 0.75)
 # Foot tracks (ANK, HEE, TOE): the forward speed's uncertainty, mm/s; the forward sigma grows
 # by it times the time since last seen (see _predictions).
 FOOT_SITES = [SITES.index(s) for s in ("ANK", "HEE", "TOE")]
@@ -923,7 +927,7 @@ def label_frame(
             a_frac = float(st.sho_x[0]) / ff.length
             if abs(da) > p["dir_speed"] * dt:
                 direction = 1 if da > 0 else -1
-            elif st.sho_lost_direction and 0.25 < a_frac < 0.75:
+            elif st.sho_lost_direction and MID_WALKWAY[0] < a_frac < MID_WALKWAY[1]:
                 # The blob was not in the last frame (missed with the track): in the
                 # middle of the walkway nobody turns round within restart_frames, so the
                 # lost track's direction stands (a child's shoulder missed three frames
