@@ -466,10 +466,11 @@ def label_pose(
     # is a reflector on the floor, not a marker (the group nearest the shank above it).
     shank_f = f[max(shank, key=lambda i: h[i])] if shank else None
     near_low = _one_foot([i for i in low_all if is_near[i]], f, FOOT_SPAN_FRAC * H, shank_f)
-    near_low = _fit_foot(near_low, f, layout * (H / H0), ("HEE", "ANK", "TOE"))
+    scaled = layout * (H / H0)
+    near_low = _fit_foot(near_low, f, scaled, ("HEE", "ANK", "TOE"))
     near_mid = 0.5 * (f[near_low[0]] + f[near_low[-1]]) if near_low else shank_f
     far_low = _one_foot([i for i in low_all if not is_near[i]], f, FOOT_SPAN_FRAC * H, near_mid)
-    far_low = _fit_foot(far_low, f, layout * (H / H0), ("HEE", "TOE"))
+    far_low = _fit_foot(far_low, f, scaled, ("HEE", "TOE"))
     if near_low:
         put(f"{near}_TOE", near_low[-1])
         rest = near_low[:-1]
@@ -526,13 +527,13 @@ def _fit_foot(
     the ones whose forward distances to the foremost best fit the template's (``layout``
     scaled to the subject), sorted by forward position ``f``; the others are reflectors on
     the floor."""
+    if len(idx) <= len(sites):
+        return idx
     tpl = [float(layout[SITES.index(s), 0]) for s in sites]
 
     def misfit(t: tuple[int, ...]) -> float:
         return sum(abs(f[t[-1]] - f[t[k]] - (tpl[-1] - tpl[k])) for k in range(len(t) - 1))
 
-    if len(idx) <= len(sites):
-        return idx
     return list(min(itertools.combinations(idx, len(sites)), key=misfit))
 
 
