@@ -21,6 +21,7 @@ from gaitflow.sim.render import SAT
 from gaitflow.sim.session import simulate_session
 
 TRIAL = "btk_PiG_Motion-FlatFoot-Full"
+OTHER_SIDE = {"L": "R", "R": "L"}
 
 
 @pytest.fixture(scope="module")
@@ -85,6 +86,39 @@ def test_the_walk_back_can_leave_the_walking_line(ses) -> None:
             depth[name, p.name] = wm.markers_caps(t)[0][:, pelvis, 1].mean()
     assert depth["offset", "out"] == pytest.approx(depth["base", "out"], abs=0.1)
     assert depth["offset", "back"] - depth["base", "back"] == pytest.approx(300.0, abs=0.1)
+
+
+def test_the_walk_can_start_from_the_images_right_edge(ses) -> None:
+    # start_side "right" (the camera on the walkway's other side): the first pass walks
+    # toward -x with the left side nearer the camera, the second the other way, and the
+    # static pose faces the first pass's way; the same gait, so the same stride lengths.
+    mir = simulate_session(TRIAL, seed=7, config=SimConfig.quick(start_side="right"))
+    sho = [MARKER_INDEX["L_SHO"], MARKER_INDEX["R_SHO"]]
+    for s, first, near_first in ((ses, 1.0, "R"), (mir, -1.0, "L")):
+        wm = s.recordings["walk-01"].motion
+        sides = (near_first, OTHER_SIDE[near_first])
+        for p, sign, near in zip(wm.passes, (first, -first), sides, strict=True):
+            t = p.t0 + np.array([0.3, 0.7]) * wm.pass_dur
+            m = wm.markers_caps(t)[0]
+            pelvis_x = m[:, [MARKER_INDEX["L_ASI"], MARKER_INDEX["R_ASI"]], 0].mean(axis=1)
+            assert np.sign(pelvis_x[1] - pelvis_x[0]) == sign
+            y = m[:, sho, 1].mean(axis=0)  # world y: away from the camera
+            assert (y[0] < y[1]) == (near == "L")
+        summary = s.truth_summary("walk-01")
+        assert [q["side_facing_camera"] for q in summary["passes"]] == list(sides)
+        _raw, gt = s.recordings["static"].frame(3)
+        y = gt.position[sho]  # camera space: Z away from the camera
+        assert (y[0, 2] < y[1, 2]) == (near_first == "L")
+        names = [f"{near_first}_{x}" for x in ("SHO", "ASI", "HIP", "KNE", "ANK", "HEE", "TOE")]
+        assert gt.visible[[MARKER_INDEX[n] for n in names]].all()
+    strides = [
+        sorted(q["length_mm"] for q in x.truth_summary("walk-01")["spatiotemporal"]["strides"])
+        for x in (ses, mir)
+    ]
+    assert len(strides[0]) >= 4
+    assert strides[1] == pytest.approx(strides[0], abs=1e-6)
+    with pytest.raises(ConfigError, match="start_side"):
+        SimConfig.quick(start_side="middle")
 
 
 def test_messages_round_trip(ses) -> None:

@@ -105,6 +105,9 @@ class SimConfig:
     n_walks: int = 1
     walk_margin_mm: float = 1000.0  # each pass starts and ends this far outside the image
     return_offset_mm: float = 0.0  # the return pass this much farther from the camera
+    # Which image edge the first pass starts from: "left" (the right side faces the camera
+    # first) or "right" (the camera on the walkway's other side: the left side first).
+    start_side: str = "left"
     show_operator: bool = True
 
     def __post_init__(self) -> None:
@@ -124,6 +127,8 @@ class SimConfig:
             raise ConfigError(f"SimConfig.paretic_swing={self.paretic_swing} is outside 1..3")
         if not 0.0 <= self.crouch_mm <= 150.0:
             raise ConfigError(f"SimConfig.crouch_mm={self.crouch_mm} is outside 0..150 mm")
+        if self.start_side not in ("left", "right"):
+            raise ConfigError(f"SimConfig.start_side={self.start_side!r} is not left or right")
         if self.paretic_side not in ("L", "R"):
             raise ConfigError(f"SimConfig.paretic_side={self.paretic_side!r} is not L or R")
         if self.wand_mount not in WAND_MOUNTS:

@@ -237,7 +237,7 @@ class SimSession:
                     "source_start_s": float(wm.time_at(p, 0.0)),
                     "source_end_s": float(wm.time_at(p, wm.src_dur)),
                     "direction_world": (p.R @ [1.0, 0, 0]).tolist(),
-                    "side_facing_camera": "R" if p.name == "out" else "L",
+                    "side_facing_camera": "R" if (p.R @ [1.0, 0, 0])[0] > 0 else "L",
                 }
                 for p in wm.passes
             ]
@@ -306,7 +306,7 @@ def simulate_session(trial: str, seed: int = 0, config: SimConfig | None = None)
     start = walk.start_point()
     start[0] = 0.5 * (x_lo + x_hi)
     ses.recordings["static"] = Recording(
-        ses, "static", StaticMotion(src, cfg, start, seed), 1, "static"
+        ses, "static", StaticMotion(src, cfg, start, seed, walk.passes[0].R), 1, "static"
     )
     vary = np.random.default_rng([seed, 99])
     for k in range(cfg.n_walks):

@@ -145,6 +145,11 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "markers returning under a tenth of the default's light: a quarter of full scale on"
         " the walking line, 7 times the skin's IR (outside what the method is built for)",
     ),
+    "mirror": (
+        {"start_side": "right"},
+        "the camera on the walkway's other side: the subject starts at the image's right edge"
+        " and shows the left side first, in the static pose too",
+    ),
     "inview": (
         {"walk_margin_mm": -400.0},
         "a short walkway: each pass starts and ends 0.4 m inside the image, so the subject"

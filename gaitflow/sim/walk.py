@@ -5,15 +5,17 @@ z up, floor at z = 0, mm; time in s from the recording's first frame.
 
 - :class:`WalkMotion`: the trial's pass across the field of view (the subject's right side
   faces the camera), a turn, and the same trial rotated 180 degrees about the vertical
-  (the return pass shows the left side). Walking is never mirrored, so left stays left.
+  (the return pass shows the left side); with ``SimConfig.start_side`` "right" the two
+  passes swap (the left side first). Walking is never mirrored, so left stays left.
 - :class:`StaticMotion`: the subject standing side-on at the start point, arms folded,
-  with a few mm of postural sway.
+  with a few mm of postural sway, facing the way the first pass walks.
 - :class:`CalibrationMotion`: the empty walkway; C floor markers placed one at a time by
   an operator whose leg and arm enter the view, with still periods in between.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Any
@@ -252,15 +254,15 @@ class WalkMotion:
         self.pass_src = pre + self.src_dur + post
         self._warp = self._clock(pre, post)
         self.pass_dur = self.pass_src / speed if self._warp is None else float(self._warp[1][-1])
-        out = Pass(0.0, np.eye(3), np.array([x_view - x_mid, D - y_mean, 0.0]), "out", pre, post)
-        ret = Pass(
-            self.pass_dur + cfg.turn_s,
-            rot_z(np.pi),
-            np.array([x_view + x_mid, D + cfg.return_offset_mm + y_mean, 0.0]),
-            "back",
-            pre,
-            post,
-        )
+        # Walking toward +x (the source's own frame) or toward -x (turned 180 degrees).
+        toward_x = (np.eye(3), np.array([x_view - x_mid, D - y_mean, 0.0]))
+        toward_minus_x = (rot_z(np.pi), np.array([x_view + x_mid, D + y_mean, 0.0]))
+        first, second = toward_x, toward_minus_x
+        if cfg.start_side == "right":
+            first, second = second, first
+        back_off = np.array([0.0, cfg.return_offset_mm, 0.0])
+        out = Pass(0.0, first[0], first[1], "out", pre, post)
+        ret = Pass(self.pass_dur + cfg.turn_s, second[0], second[1] + back_off, "back", pre, post)
         self.passes = (out, ret)
         self.duration_s = 2 * self.pass_dur + cfg.turn_s
         self.albedo = _albedo(body, cfg)
@@ -503,10 +505,19 @@ def standing_trial(trial: Trial) -> Trial:
     )
 
 
+def _turned(x: np.ndarray, R: np.ndarray, centre: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Points (..., 3) turned by R about the vertical through ``centre``, that vertical
+    moved to ``at`` (floor x, y)."""
+    flat = np.array([1.0, 1.0, 0.0])
+    return (x - centre * flat) @ R.T + np.asarray(at, dtype=np.float64) * flat
+
+
 class StaticMotion:
     """The subject standing side-on at the walk's start point, with postural sway."""
 
-    def __init__(self, trial: Trial, cfg: SimConfig, at: np.ndarray, seed: int) -> None:
+    def __init__(
+        self, trial: Trial, cfg: SimConfig, at: np.ndarray, seed: int, R: np.ndarray | None = None
+    ) -> None:
         self.cfg = cfg
         st = standing_trial(trial)
         body = build_body(
@@ -523,6 +534,16 @@ class StaticMotion:
         k = SEGMENT_INDEX["pelvis"]
         centre = 0.5 * (body.cap_a[0, k] + body.cap_b[0, k])
         self.T = np.array([at[0] - centre[0], at[1] - centre[1], 0.0])
+        if R is not None and not np.allclose(R, np.eye(3)):
+            # Facing the other way: the body turned about the vertical through its pelvis.
+            body = dataclasses.replace(
+                body,
+                markers=_turned(body.markers, R, centre, at),
+                cap_a=_turned(body.cap_a, R, centre, at),
+                cap_b=_turned(body.cap_b, R, centre, at),
+                normal=None if body.normal is None else body.normal @ R.T,
+            )
+            self.T = np.zeros(3)
         self.body = body
         self.albedo = _albedo(body, cfg)
         self.duration_s = cfg.static_s
