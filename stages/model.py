@@ -129,6 +129,15 @@ FOOT_BAND_FRAC = 0.085
 # error and larger shoes. A reflector lying on the walkway ahead of a toe (0.26 H from the
 # heel on `far+strays_late`) is beyond it.
 FOOT_SPAN_FRAC = 0.24
+# A subject's heel-to-toe length over the subject-scaled template's: 0.82-1.27 on the
+# bundled trials (0.11-0.17 H against 0.13 H).
+FOOT_LENGTH_RANGE = (0.75, 1.35)
+# Weight of a foot marker's height misfit against its forward one (heights of foot markers
+# carry the silhouette's depth error: a heel measured 37 mm too high on Motion3).
+FOOT_HEIGHT_WEIGHT = 0.5
+# Two foot markers within this height (mm) of each other are equally "the highest", the
+# ankle's mark in facing_from_feet.
+FOOT_HEIGHT_TIE = 15.0
 
 # The floor frame's fallback (FloorFrame.from_record), declared once for every stage that
 # builds one.
@@ -275,13 +284,28 @@ def facing_from_feet(pts: np.ndarray, sho_height: float) -> int:
     low = pts[pts[:, 2] < FOOT_BAND_FRAC * sho_height]
     if len(low) < 2:
         return 0
-    ank = low[np.argmax(low[:, 2])]
-    rest = low[np.arange(len(low)) != np.argmax(low[:, 2])]
+    order = np.argsort(-low[:, 2])
+    vote = _toe_side(low, int(order[0]), sho_height)
+    if low[order[0], 2] - low[order[1], 2] < FOOT_HEIGHT_TIE:
+        # A toe marker as high as the ankle's (btk_c3dorg_sample04_Matt's left foot: 68
+        # and 67 mm): either may be the ankle, and the feet vote only if both readings
+        # agree (the toe taken for the ankle points the foot backwards).
+        other = _toe_side(low, int(order[1]), sho_height)
+        if other != vote:
+            return 0
+    return vote
+
+
+def _toe_side(low: np.ndarray, ank: int, sho_height: float) -> int:
+    """The side (+1 / -1, 0 = undecidable) on which the foot marker farthest from the
+    ankle ``ank`` along the walking axis lies, among the low markers (N, 3) of its foot."""
+    a = low[ank]
+    rest = np.delete(low, ank, axis=0)
     # Only the ankle's own foot: markers within a foot length horizontally.
-    near = rest[np.hypot(rest[:, 0] - ank[0], rest[:, 1] - ank[1]) < 0.2 * sho_height]
+    near = rest[np.hypot(rest[:, 0] - a[0], rest[:, 1] - a[1]) < 0.2 * sho_height]
     if len(near) == 0:
         return 0
-    da = near[:, 0] - ank[0]
+    da = near[:, 0] - a[0]
     s = float(da[np.argmax(np.abs(da))])
     return 0 if abs(s) < 20.0 else int(np.sign(s))
 
@@ -467,10 +491,10 @@ def label_pose(
     shank_f = f[max(shank, key=lambda i: h[i])] if shank else None
     near_low = _one_foot([i for i in low_all if is_near[i]], f, FOOT_SPAN_FRAC * H, shank_f)
     scaled = layout * (H / H0)
-    near_low = _fit_foot(near_low, f, scaled, ("HEE", "ANK", "TOE"))
+    near_low = _fit_foot(near_low, f, h, scaled, ("HEE", "ANK", "TOE"))
     near_mid = 0.5 * (f[near_low[0]] + f[near_low[-1]]) if near_low else shank_f
     far_low = _one_foot([i for i in low_all if not is_near[i]], f, FOOT_SPAN_FRAC * H, near_mid)
-    far_low = _fit_foot(far_low, f, scaled, ("HEE", "TOE"))
+    far_low = _fit_foot(far_low, f, h, scaled, ("HEE", "TOE"))
     if near_low:
         put(f"{near}_TOE", near_low[-1])
         rest = near_low[:-1]
@@ -521,18 +545,35 @@ def _one_foot(idx: list[int], f: np.ndarray, span: float, centre: float | None) 
 
 
 def _fit_foot(
-    idx: list[int], f: np.ndarray, layout: np.ndarray, sites: tuple[str, ...]
+    idx: list[int], f: np.ndarray, h: np.ndarray, layout: np.ndarray, sites: tuple[str, ...]
 ) -> list[int]:
     """Of more blobs of one foot than its visible ``sites`` (rearmost first, the toe last),
     the ones whose forward distances to the foremost best fit the template's (``layout``
     scaled to the subject), sorted by forward position ``f``; the others are reflectors on
-    the floor."""
+    the floor or the other foot's markers.
+
+    With three sites the template is also scaled to the candidates' own heel-to-toe length
+    (within ``FOOT_LENGTH_RANGE``): feet differ in length more than in shape, and fitted at
+    the template's length a short foot's heel and toe (0.11 H) misfit as much as a far heel
+    seen beside its ankle. The middle site's height above the rearmost counts too, at
+    ``FOOT_HEIGHT_WEIGHT``: a shoe's reflector can sit where the ankle marker would be along
+    the foot, but not as high. With two sites the length is all there is to fit.
+    """
     if len(idx) <= len(sites):
         return idx
     tpl = [float(layout[SITES.index(s), 0]) for s in sites]
+    tpl_h = [float(layout[SITES.index(s), 1]) for s in sites]
+    length = tpl[-1] - tpl[0]
 
     def misfit(t: tuple[int, ...]) -> float:
-        return sum(abs(f[t[-1]] - f[t[k]] - (tpl[-1] - tpl[k])) for k in range(len(t) - 1))
+        scale = 1.0
+        if len(t) > 2 and length > 0:
+            scale = float(np.clip((f[t[-1]] - f[t[0]]) / length, *FOOT_LENGTH_RANGE))
+        along = sum(abs(f[t[-1]] - f[t[k]] - scale * (tpl[-1] - tpl[k])) for k in range(len(t) - 1))
+        up = sum(
+            abs(h[t[k]] - h[t[0]] - scale * (tpl_h[k] - tpl_h[0])) for k in range(1, len(t) - 1)
+        )
+        return along + FOOT_HEIGHT_WEIGHT * up
 
     return list(min(itertools.combinations(idx, len(sites)), key=misfit))
 

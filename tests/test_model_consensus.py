@@ -223,3 +223,61 @@ def test_a_reflector_beyond_a_foots_length_is_no_toe_when_heel_and_ankle_merge()
     idx = label_pose(np.vstack([P[SEEN], stray]), 1, LAYOUT)
     assert idx[MARKER_INDEX["R_TOE"]] == SEEN.index(MARKER_INDEX["R_TOE"])
     assert len(SEEN) not in idx
+
+
+def _short_near_foot(P: np.ndarray, ratio: float) -> np.ndarray:
+    """P with the near ankle and toe moved toward the heel: a foot ``ratio`` as long."""
+    P = P.copy()
+    heel = P[MARKER_INDEX["R_HEE"], 0]
+    for name in ("R_ANK", "R_TOE"):
+        P[MARKER_INDEX[name], 0] = heel + ratio * (P[MARKER_INDEX[name], 0] - heel)
+    return P
+
+
+def test_a_far_heel_beside_a_short_near_foots_ankle_is_no_ankle() -> None:
+    # A foot 0.8 of the template's length (heel to toe 0.11 H on btk_c3dorg_sample04_Matt
+    # against the template's 0.13 H) and the far heel seen between the legs 10 mm ahead of
+    # the near heel, its depth measured on the near leg (24 mm deeper) and so 60 mm too
+    # high: at the template's length it fitted the ankle's place better than the ankle.
+    P = _short_near_foot(_pose(), 0.8)
+    heel = P[MARKER_INDEX["R_HEE"]]
+    extra = heel + np.array([10.0, 24.0, 60.0])
+    idx = label_pose(np.vstack([P[SEEN], extra]), 1, LAYOUT)
+    for name in ("R_ANK", "R_HEE", "R_TOE"):
+        assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+
+
+@pytest.mark.parametrize("ratio", [0.8, 1.0, 1.2])
+def test_a_shoe_reflector_where_the_ankle_would_be_is_no_ankle(ratio: float) -> None:
+    # A reflective patch on the shoe 60 mm ahead of the heel marker and 10 mm below it (the
+    # `shoes` set-up): along the foot it sits where the template's ankle does, so only its
+    # height tells it from the ankle marker once the template is scaled to the foot.
+    P = _short_near_foot(_pose(), ratio)
+    heel = P[MARKER_INDEX["R_HEE"]]
+    shoe = heel + np.array([60.0 * ratio, -45.0, -10.0])
+    idx = label_pose(np.vstack([P[SEEN], shoe]), 1, LAYOUT)
+    for name in ("R_ANK", "R_HEE", "R_TOE"):
+        assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+    assert len(SEEN) not in idx
+
+
+@pytest.mark.parametrize("toe_above_ankle", [-5.0, 0.0, 8.0])
+def test_a_toe_marker_as_high_as_the_ankle_does_not_turn_the_facing(
+    toe_above_ankle: float,
+) -> None:
+    # btk_c3dorg_sample04_Matt's left toe marker sits as high as its ankle marker (68 and
+    # 67 mm): seen from the walkway's other side (left side near, facing -a) the toe,
+    # measured 8 mm higher, was taken for the ankle and every frame's feet vote pointed
+    # the foot backwards; with the camera high the mass vote only tied it, and a tie named
+    # the right side near. The feet now abstain when the two readings disagree.
+    from gaitflow.stages.model import FloorFrame, build_model
+
+    P = body_to_floor(LAYOUT, np.array([2000.0, 0.0, 0.0]), -1)
+    seen = [i for i, n in enumerate(MARKER_NAMES) if n.startswith("L_") or n in ("R_HEE", "R_TOE")]
+    toe, ank = MARKER_INDEX["L_TOE"], MARKER_INDEX["L_ANK"]
+    P[toe, 2] = P[ank, 2] + toe_above_ankle
+    assert facing_from_feet(P[seen], float(LAYOUT[0, 1])) != 1
+    ff = FloorFrame.from_record(None, 800.0)
+    rng = np.random.default_rng(5)
+    frames = [ff.to_camera(P[seen] + rng.normal(0.0, 1.0, (len(seen), 3))) for _ in range(9)]
+    assert build_model(frames, ff)["near_side"] == "L"
