@@ -278,6 +278,9 @@ FAR_NEW_DEPTH = 40.0
 # the far heel 53 / 81 / 138 mm (1st, 5th percentile, median), the far tibia wand 159 mm
 # and the far ankle 249 mm at their 1st percentile.
 NEAR_TIB_DEEP = 80.0
+# The same for the near hip, mm: at most 96-143 mm deeper (99th percentile per set-up, 5425
+# views over seven cached set-ups, eleven checked), the far thigh 193-241 mm at the median.
+NEAR_HIP_DEEP = 160.0
 # Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
 # the foot search leaves to the limb search when the knee has no fresh track (see _lower).
 KNEE_RING = 0.5
@@ -1287,6 +1290,11 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     # wrong label left.
     top = sho[2] - H + spines - drop
     hy.forbid((1,), lambda ph: ph[:, 2] <= top)
+    # Nor does it lie far deeper than its standing depth from the shoulder track (as the
+    # near tibia wand, NEAR_HIP_DEEP): a hip track that had slipped onto the far thigh held
+    # it 330 mm behind the shoulder.
+    hip_e = sho[1] + geo.rel_sho("near", "HIP")[1] + NEAR_HIP_DEEP
+    hy.forbid((1,), lambda ph: ph[:, 1] < hip_e)
     # Near and far ASI both seen: the near one is the nearer (a relative test survives the
     # silhouette's depth bias better than the absolute depth does).
     hy.forbid((2, 3), lambda pn, pf: pn[:, 1] < pf[:, 1])

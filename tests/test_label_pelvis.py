@@ -17,11 +17,15 @@ HIP = MARKER_INDEX["R_HIP"]
 
 
 def _pelvis(
-    blobs: np.ndarray, still: np.ndarray | None = None, bob: float = 0.0, hip_age: int = 0
+    blobs: np.ndarray,
+    still: np.ndarray | None = None,
+    bob: float = 0.0,
+    hip_age: int = 0,
+    hip_at: np.ndarray | None = None,
 ) -> np.ndarray:
     """Run the pelvis search (near side R) on blobs (N, 3), the shoulder track ``bob`` mm
-    above its standing height, the hip tracked at its standing place ``hip_age`` frames
-    ago (0: untracked); return the (20,) assignment."""
+    above its standing height, the hip tracked at its standing place (or at ``hip_at``)
+    ``hip_age`` frames ago (0: untracked); return the (20,) assignment."""
     geo = label.Geometry.from_model(None)
     sho = np.array([0.0, 0.0, geo.sho_h + bob])
     st = label.init(label.PARAMS.resolve({}))
@@ -30,6 +34,8 @@ def _pelvis(
         # as _predictions grows a track's sigma with the frames unseen
         s = 30.0 + 20.0 * hip_age
         sig[HIP], tracked[HIP] = [s, s + 20.0, s], True
+        if hip_at is not None:
+            pred[HIP] = hip_at
     qm = np.repeat(np.asarray(blobs, float)[:, None, :], 3, axis=1)
     fr = label._Frame(
         qm,
@@ -113,3 +119,20 @@ def test_huge_blobs_are_no_markers() -> None:
     assert not label._huge(r[:4], 4).any()
     assert not label._huge(r, 7).any()
     assert not label._huge(None, 6).any()
+
+
+def test_a_hip_track_on_a_blob_far_behind_the_shoulder_lets_it_go() -> None:
+    # The near hip's track had slipped onto the far thigh (btk_c3dorg_sample04_Matt seen
+    # from the walkway's other side, `mirror`): 330 mm deeper than the near hip stands from
+    # the shoulder, and the track's own prediction kept it there. The near hip lies at most
+    # NEAR_HIP_DEEP deeper (96-143 mm at the 99th percentile on eleven set-ups).
+    deep = _standing("R_HIP", 290.0, -60.0) + np.array([0.0, 330.0, 0.0])
+    assert _pelvis(np.array([deep]), hip_age=1, hip_at=deep)[HIP] == -1
+    hip = _standing("R_HIP", 10.0)
+    assert _pelvis(np.array([hip, deep]), hip_age=1, hip_at=deep)[HIP] != 1
+    # Once that track has aged out, the standing offsets find the hip.
+    assert _pelvis(np.array([hip, deep]))[HIP] == 0
+    # A near hip measured 120 mm deeper than it stood (the silhouette's depth error, the
+    # trunk's rotation) is still the hip.
+    back = _standing("R_HIP", 10.0) + np.array([0.0, 120.0, 0.0])
+    assert _pelvis(np.array([back]), hip_age=1, hip_at=back)[HIP] == 0
