@@ -275,9 +275,11 @@ def facing_from_feet(pts: np.ndarray, sho_height: float) -> int:
     """Facing direction of a standing subject from the foot markers (floor coords, (N, 3)).
 
     The toe marker lies far in front of the ankle, the heel a little behind it. Among the
-    low markers (below 12% of shoulder height) the ankle is the highest; the marker of the
-    same foot furthest from it along the walking axis is the toe, and its side is the
-    facing direction. Returns +1 or -1, or 0 when undecidable.
+    low markers (below ``FOOT_BAND_FRAC`` of the shoulder height) the ankle is the highest;
+    the marker of the same foot furthest from it along the walking axis is the toe, and its
+    side is the facing direction. With the two highest within ``FOOT_HEIGHT_TIE`` of each
+    other, both are read as the ankle and must agree. Returns +1 or -1, or 0 when
+    undecidable.
     """
     # The foot band of label_pose: a tibia wand low on the shank (0.10-0.13 H on two of
     # the trials) is no ankle.
