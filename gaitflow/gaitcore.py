@@ -159,9 +159,10 @@ def fill_from_segment(
     v = v / np.where(vn > 0.02, vn, np.nan)[:, None]
     basis = np.stack((u, v, np.cross(u, v)), axis=1)  # (F, 3, 3): rows u, v, w
     seen = np.isfinite(v).all(axis=1)
-    ref = seen & ~missing_rows(out)
+    miss = missing_rows(out)
+    ref = seen & ~miss
     nt = len(t)
-    for g0, g1 in runs(missing_rows(out)):
+    for g0, g1 in runs(miss):
         lo, hi = g0 - 1, g1 + 1
         if lo < 0 or hi >= nt or not t[hi] - t[lo] <= max_gap_s + 1e-9:
             continue

@@ -285,7 +285,7 @@ def _true_calibration(ses: Any, name: str) -> Any:
     wm = ses.recordings[name].motion
     r = ses.renderer
     start_w = wm.start_point() * np.array([1.0, 1.0, 0.0])
-    end_w = start_w + 3000.0 * (wm.passes[0].R @ np.array([1.0, 0.0, 0.0]))
+    end_w = start_w + 3000.0 * wm.passes[0].direction
     hdr = CalibrationRecord.make_header("cam0", "calibration", 0, 0, True)
     return CalibrationRecord(
         header=hdr,

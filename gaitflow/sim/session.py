@@ -236,12 +236,12 @@ class SimSession:
                     "end_s": float(p.t0 + wm.pass_dur),
                     "source_start_s": float(wm.time_at(p, 0.0)),
                     "source_end_s": float(wm.time_at(p, wm.src_dur)),
-                    "direction_world": (p.R @ [1.0, 0, 0]).tolist(),
-                    "side_facing_camera": "R" if (p.R @ [1.0, 0, 0])[0] > 0 else "L",
+                    "direction_world": p.direction.tolist(),
+                    "side_facing_camera": "R" if p.direction[0] > 0 else "L",
                 }
                 for p in wm.passes
             ]
-            directions = {p.name: p.R @ np.array([1.0, 0.0, 0.0]) for p in wm.passes}
+            directions = {p.name: p.direction for p in wm.passes}
             hee = [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]]
 
             def heel_at(t: np.ndarray) -> np.ndarray:

@@ -63,6 +63,11 @@ class Pass:
     pre: float
     post: float
 
+    @property
+    def direction(self) -> np.ndarray:
+        """(3,) the walking direction in the world (the source's +x turned by R)."""
+        return self.R[:, 0]
+
 
 @dataclass(frozen=True)
 class Cycle:
@@ -533,9 +538,9 @@ class StaticMotion:
         )
         k = SEGMENT_INDEX["pelvis"]
         centre = 0.5 * (body.cap_a[0, k] + body.cap_b[0, k])
-        self.T = np.array([at[0] - centre[0], at[1] - centre[1], 0.0])
         if R is not None and not np.allclose(R, np.eye(3)):
-            # Facing the other way: the body turned about the vertical through its pelvis.
+            # Facing the other way: the body turned about the vertical through its pelvis,
+            # already standing at ``at``.
             body = dataclasses.replace(
                 body,
                 markers=_turned(body.markers, R, centre, at),
@@ -544,6 +549,8 @@ class StaticMotion:
                 normal=None if body.normal is None else body.normal @ R.T,
             )
             self.T = np.zeros(3)
+        else:
+            self.T = np.array([at[0] - centre[0], at[1] - centre[1], 0.0])
         self.body = body
         self.albedo = _albedo(body, cfg)
         self.duration_s = cfg.static_s
