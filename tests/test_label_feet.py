@@ -13,7 +13,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from gaitflow.schemas import Markers3D
 from gaitflow.stages import label
+from gaitflow.stages.model import FloorFrame
 
 from gaitflow.markers import MARKER_INDEX, SITES
 
@@ -500,6 +502,67 @@ def test_a_heel_blob_of_one_marker_or_beside_a_labelled_ankle_stays() -> None:
     for kwargs in ({"radius": 1.5}, {"assign_ankle": True}, {"ratio": 0.0}):
         before, after = _merged_heel_case(**kwargs)
         assert np.array_equal(before, after), kwargs
+
+
+def _merged_ankle_frame(radius: float) -> tuple[Markers3D, np.ndarray]:
+    """btk_PiG_Motion-FlatFoot-Full (simulated, seed 0) frame 53: the right heel and ankle in
+    swing, one blurred blob (blob 1, r_m ``radius``), named ankle; the tibia wand (blob 0)
+    and toe (blob 2) on their own. Camera mm."""
+    radii = np.array([1.3, radius, 1.2, 1.4, 1.25])
+    pos = np.zeros((5, 3, 3))
+    for k, p in enumerate(
+        [
+            [-1380, 480, 2700],
+            [-1510, 650, 2740],
+            [-1420, 700, 2690],
+            [-1300, 0, 2600],
+            [-900, 690, 2800],
+        ]
+    ):
+        pos[k] = p
+    mk = Markers3D(
+        header=Markers3D.make_header("c", "walk-01", 53, 53),
+        centroid=np.arange(10.0).reshape(5, 2),
+        marker_radius=radii,
+        region_radius=radii + 2.0,
+        depth=pos[:, :, 2].copy(),
+        position=pos,
+    )
+    assign = np.full(20, -1)
+    for name, b in (("R_TIB", 0), ("R_ANK", 1), ("R_TOE", 2), ("R_SHO", 3)):
+        assign[MARKER_INDEX[name]] = b
+    return mk, assign
+
+
+def test_an_ankle_on_a_merged_heel_ankle_blob_is_not_published() -> None:
+    # Its centroid lies between heel and ankle, 10-30 mm off the ankle: the gait stage fills
+    # the ankle from the shank instead. The label stays for tracking (it is in ``assign``).
+    geo = label.Geometry.from_model(None)
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    ff = FloorFrame(rot=rot, origin=np.array([0.0, 800.0, 0.0]))
+    ank, tib, toe = (MARKER_INDEX[n] for n in ("R_ANK", "R_TIB", "R_TOE"))
+    mk, assign = _merged_ankle_frame(2.0)
+    assert label.merged_ankle(assign, mk.marker_radius, "R", 1.4)
+    out, _ = label._output(mk, assign, 1, "R", None, None, None, ff, (geo, 1.4))
+    assert np.isnan(out.position[ank]).all() and np.isnan(out.pixel[ank]).all()
+    assert out.blob[ank] == -1
+    assert assign[ank] == 1  # the caller's array is not changed
+    np.testing.assert_allclose(out.position[[tib, toe]], [[-1380, 480, 2700], [-1420, 700, 2690]])
+    # Published: a blob of one marker's size, an ankle beside a labelled heel, the other
+    # side's ankle, and with the rule off.
+    one, _ = _merged_ankle_frame(1.4)
+    with_heel = assign.copy()
+    with_heel[MARKER_INDEX["R_HEE"]] = 4
+    for m, a, near, merged in (
+        (one, assign, "R", (geo, 1.4)),
+        (mk, with_heel, "R", (geo, 1.4)),
+        (mk, assign, "L", (geo, 1.4)),
+        (mk, assign, "R", (geo, 0.0)),
+        (mk, assign, "R", None),
+    ):
+        out, _ = label._output(m, a, 1, near, None, None, None, ff, merged)
+        np.testing.assert_allclose(out.position[ank], [-1510, 650, 2740])
+        assert out.blob[ank] == 1
 
 
 def _far_heel_back_frame(heel_age: int) -> np.ndarray:
