@@ -1974,6 +1974,8 @@ def _output(
         radius = np.asarray(mk.marker_radius, dtype=np.float64)
         position = merged_heel(position, assign, radius, near, direction, ff.rot, *merged)
         if merged_ankle(assign, radius, near, merged[1]):
+            # (its depth is not kept for the next frame's layer choice either, as for any
+            # marker not published)
             ank = MARKER_INDEX[f"{near}_ANK"]
             position[ank] = pixel[ank] = np.nan
             published = assign.copy()

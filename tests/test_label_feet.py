@@ -505,9 +505,9 @@ def test_a_heel_blob_of_one_marker_or_beside_a_labelled_ankle_stays() -> None:
 
 
 def _merged_ankle_frame(radius: float) -> tuple[Markers3D, np.ndarray]:
-    """btk_PiG_Motion-FlatFoot-Full (simulated, seed 0) frame 53: the right heel and ankle in
-    swing, one blurred blob (blob 1, r_m ``radius``), named ankle; the tibia wand (blob 0)
-    and toe (blob 2) on their own. Camera mm."""
+    """A frame shaped as btk_PiG_Motion-FlatFoot-Full's (simulated, seed 0) frame 53, with
+    round numbers (camera mm): the right heel and ankle in swing, one blurred blob (blob 1,
+    r_m ``radius``) named ankle; the tibia wand (blob 0) and toe (blob 2) on their own."""
     radii = np.array([1.3, radius, 1.2, 1.4, 1.25])
     pos = np.zeros((5, 3, 3))
     for k, p in enumerate(
