@@ -1064,25 +1064,34 @@ def _learn_foot(
     return replace(st, foot=cur + rate * (obs - cur), foot_n=st.foot_n + 1)
 
 
-def _huge(radius: np.ndarray | None, n: int) -> np.ndarray:
-    """(n,) blobs far larger than a marker: radius over ``HUGE_BLOB`` times the frame's median.
+def _size_ratio(radius: np.ndarray, min_blobs: int) -> np.ndarray | None:
+    """(N,) each blob's marker radius r_m over the frame's median (of the finite ones; NaN
+    stays NaN), or None with fewer than ``min_blobs`` blobs or no positive median.
 
-    ``radius`` (n,) is locate's r_m per blob (px; None or another length: nothing is huge).
     Markers of one session share a size and a distance to the camera, so the median blob is
-    a marker; two markers merged into one blob measure 1.6-2.4 times it, a hand or a
-    reflective patch more (the bundled walks' stray hand: 3-4.7). Needs 5 blobs for a median.
+    a marker: two markers merged into one blob measure 1.2-2.4 times it, a hand or a
+    reflective patch more (the bundled walks' stray hand: 3-4.7). Serves :func:`_huge` and
+    :func:`_merged`.
     """
-    out = np.zeros(n, bool)
-    if radius is None or len(radius) != n or n < 5:
-        return out
     r = np.asarray(radius, dtype=np.float64)
     fin = np.isfinite(r)
-    if not fin.any():
-        return out
+    if len(r) < min_blobs or not fin.any():
+        return None
     med = float(np.median(r[fin]))
-    if med > 0:
-        out[fin] = r[fin] > HUGE_BLOB * med
-    return out
+    return r / med if med > 0 else None
+
+
+def _huge(radius: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) blobs far larger than a marker: radius over ``HUGE_BLOB`` times the frame's median
+    (:func:`_size_ratio`; needs 5 blobs for a median).
+
+    ``radius`` (n,) is locate's r_m per blob (px; None or another length: nothing is huge).
+    """
+    ratio = None if radius is None or len(radius) != n else _size_ratio(radius, 5)
+    if ratio is None:
+        return np.zeros(n, bool)
+    with np.errstate(invalid="ignore"):
+        return ratio > HUGE_BLOB
 
 
 STILL_MOVE_MM = 20.0  # the shoulder's move per frame below which nothing is judged still
@@ -1853,13 +1862,14 @@ def merged_ankle(assign: np.ndarray, radius: np.ndarray, near: str, ratio: float
 
 
 def _merged(radius: np.ndarray, ratio: float) -> np.ndarray | None:
-    """(N,) blobs whose marker radius r_m is at least ``ratio`` times the frame's median:
-    two markers merged. None with ``ratio`` <= 0 or fewer than 3 blobs (no median to
-    speak of)."""
-    r = np.asarray(radius, dtype=np.float64)
-    if ratio <= 0 or len(r) < 3:
+    """(N,) blobs whose marker radius r_m is at least ``ratio`` times the frame's median
+    (:func:`_size_ratio`): two markers merged. None with ``ratio`` <= 0 or fewer than 3
+    blobs (no median to speak of)."""
+    size = _size_ratio(radius, 3) if ratio > 0 else None
+    if size is None:
         return None
-    return r >= ratio * float(np.median(r))
+    with np.errstate(invalid="ignore"):
+        return size >= ratio
 
 
 def fill_modes(pos: np.ndarray) -> np.ndarray:
