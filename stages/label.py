@@ -45,8 +45,10 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
    track; a lone far blob only on last frame's track, and not when the other site's
    live track lies nearer it, in (forward, height) or across its viewing ray); ambiguity
-   is judged on the joint hypotheses, for the near labels and the far ones alike; a lone
-   near foot marker needs a fresh track. Foot tracks widen with the time unseen
+   is judged on the joint hypotheses, for the near labels and the far ones alike (a near
+   label is ambiguous too when its blob could as well be the far heel's or toe's, the near
+   slot left empty: ``_clear_of_far_foot``); a lone near foot marker, or an ankle whose
+   heel and toe that test left out, needs a fresh track. Foot tracks widen with the time unseen
    (``FOOT_SPEED_SIG``: swing onset); an untracked far heel (toe) pays for a blob the near
    heel's (toe's) fresh track claims, and a tracked thigh wand for one the knee's fresh
    track claims (judged across the blob's viewing ray, along which a layer in front moves
@@ -711,6 +713,23 @@ def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float)
     other = (T[m] != T) & (T < K)  # (M, r): the slot holds another blob
     alt = np.where(other, cost[:, None], np.inf).min(axis=0)
     return ((T[m] < K) & (alt - cost[m] >= margin)).tolist()
+
+
+def _clear_of_far_foot(
+    total: np.ndarray, slot: np.ndarray, T2: np.ndarray, b: int, r: int, margin: float
+) -> bool:
+    """Is near blob ``b``, held by a slot of near hypothesis ``r``, clearly not the far heel
+    or toe? Every joint hypothesis whose near slot leaves ``b`` while its far completion
+    takes it as heel or toe must cost at least ``margin`` more than the best one.
+
+    ``total`` (R, A2): near hypothesis by far completion; ``slot`` (R,): the slot's blob in
+    each near hypothesis; ``T2`` (A2, 3): the far completions (heel, toe, tibia absorber).
+    :func:`_unambiguous` counts only hypotheses giving the slot another blob: one leaving it
+    empty, the blob going to the far foot, never made a near label ambiguous.
+    """
+    far_b = (T2[:, :2] == b).any(axis=1)
+    alt = total[(slot != b)[:, None] & far_b[None, :]]
+    return not alt.size or float(alt.min()) - float(total[r].min()) >= margin
 
 
 def _far_unambiguous(
@@ -1484,12 +1503,25 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             # Ambiguity over the joint hypotheses: a near label whose blob could as well be
             # the far foot's is judged with the far foot's completion counted.
             keep = _unambiguous(total.min(axis=1), T[order], int(r), K, fr.ambiguity)
+            # ... and so is a foot label whose blob could as well be the far heel's or toe's,
+            # the near slot left empty: with the near foot beyond the image's edge at a pass's
+            # first frames, the far foot took all three near foot labels.
+            keep = [
+                kept
+                and (k == 0 or _clear_of_far_foot(total, Tn[:, k], T2, int(tf[k]), r, fr.ambiguity))
+                for k, kept in enumerate(keep)
+            ]
             # A lone foot marker (the other two of ANK, HEE, TOE missing) has no foot
-            # geometry behind it: only a fresh track may name it.
+            # geometry behind it: only a fresh track may name it. Nor has an ankle whose heel
+            # and toe the ambiguity test left out (a near toe at the image's edge, its ankle
+            # beyond it, took the ankle label). A heel or toe left alone so keeps its label
+            # (dropped too, they cost 5 % of the toe offs on the bundled walks).
             lone_foot = int((tf[1:] < K).sum()) == 1
+            lone_ankle = int((tf[1:] < K).sum()) > 1 and sum(keep[1:]) == 1
             for k, i in enumerate(foot_idx):
                 if keep[k] and tf[k] < K:
-                    if k > 0 and lone_foot and not (fr.tracked[i] and fr.age[i] == 1):
+                    alone = lone_foot or (lone_ankle and k == 1)
+                    if k > 0 and alone and not (fr.tracked[i] and fr.age[i] == 1):
                         continue
                     chosen[i] = int(tf[k])
             keep2 = _far_unambiguous(total, T2, j, K, fr.ambiguity)

@@ -278,8 +278,9 @@ def facing_from_feet(pts: np.ndarray, sho_height: float) -> int:
     low markers (below ``FOOT_BAND_FRAC`` of the shoulder height) the ankle is the highest;
     the marker of the same foot furthest from it along the walking axis is the toe, and its
     side is the facing direction. With the two highest within ``FOOT_HEIGHT_TIE`` of each
-    other, both are read as the ankle and must agree. Returns +1 or -1, or 0 when
-    undecidable.
+    other, both are read as the ankle and must agree, or only one reading may have the
+    ankle between its foot's other markers (an ankle lies between heel and toe). Returns
+    +1 or -1, or 0 when undecidable.
     """
     # The foot band of label_pose: a tibia wand low on the shank (0.10-0.13 H on two of
     # the trials) is no ankle.
@@ -291,23 +292,40 @@ def facing_from_feet(pts: np.ndarray, sho_height: float) -> int:
     if low[order[0], 2] - low[order[1], 2] < FOOT_HEIGHT_TIE:
         # A toe marker as high as the ankle's (btk_c3dorg_sample04_Matt's left foot: 68
         # and 67 mm): either may be the ankle, and the feet vote only if both readings
-        # agree (the toe taken for the ankle points the foot backwards).
+        # agree (the toe taken for the ankle points the foot backwards), or if only one
+        # has the ankle between its foot's other markers, as an ankle lies between heel
+        # and toe (the toe taken for the ankle has them all on one side).
         other = _toe_side(low, int(order[1]), sho_height)
         if other != vote:
-            return 0
+            between = [_between(low, int(k), sho_height) for k in order[:2]]
+            if between[0] == between[1]:
+                return 0
+            return vote if between[0] else other
     return vote
+
+
+def _foot_of(low: np.ndarray, ank: int, sho_height: float) -> np.ndarray:
+    """Forward offsets (M,) from the ankle ``ank`` of the other low markers (N, 3) within a
+    foot's length of it horizontally (its own foot, and a far marker beside it)."""
+    a = low[ank]
+    rest = np.delete(low, ank, axis=0)
+    near = rest[np.hypot(rest[:, 0] - a[0], rest[:, 1] - a[1]) < 0.2 * sho_height]
+    return near[:, 0] - a[0]
+
+
+def _between(low: np.ndarray, ank: int, sho_height: float) -> bool:
+    """Does the ankle ``ank`` have foot markers both behind and ahead of it (by 20 mm)?"""
+    da = _foot_of(low, ank, sho_height)
+    return bool((da < -20.0).any() and (da > 20.0).any())
 
 
 def _toe_side(low: np.ndarray, ank: int, sho_height: float) -> int:
     """The side (+1 / -1, 0 = undecidable) on which the foot marker farthest from the
     ankle ``ank`` along the walking axis lies, among the low markers (N, 3) of its foot."""
-    a = low[ank]
-    rest = np.delete(low, ank, axis=0)
     # Only the ankle's own foot: markers within a foot length horizontally.
-    near = rest[np.hypot(rest[:, 0] - a[0], rest[:, 1] - a[1]) < 0.2 * sho_height]
-    if len(near) == 0:
+    da = _foot_of(low, ank, sho_height)
+    if len(da) == 0:
         return 0
-    da = near[:, 0] - a[0]
     s = float(da[np.argmax(np.abs(da))])
     return 0 if abs(s) < 20.0 else int(np.sign(s))
 

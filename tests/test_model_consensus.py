@@ -281,3 +281,25 @@ def test_a_toe_marker_as_high_as_the_ankle_does_not_turn_the_facing(
     rng = np.random.default_rng(5)
     frames = [ff.to_camera(P[seen] + rng.normal(0.0, 1.0, (len(seen), 3))) for _ in range(9)]
     assert build_model(frames, ff)["near_side"] == "L"
+
+
+@pytest.mark.parametrize("facing", [1, -1])
+def test_a_tied_toe_marker_is_told_from_the_ankle_by_the_heel(facing: int) -> None:
+    # btk_c3dorg_sample04_Matt's static pose on ``low+near+d20+slow+skew`` (floor coords,
+    # mm, first frame; H 1218): the near toe 13 mm below the near ankle, within the tie.
+    # Read as the ankle, the toe has the ankle and both heels behind it; the ankle has the
+    # heel behind and the toe ahead, as an ankle lies between them. Abstaining, the feet
+    # left the vote to the mass, which the subject's lean turned: the model came out
+    # mirrored (the left side near) and the right knee was never measured.
+    low = np.array(
+        [
+            [2047.0, -193.0, 84.0],  # near ankle
+            [2148.0, -178.0, 71.0],  # near toe
+            [1996.0, 24.0, 25.0],  # far heel
+            [2008.0, -146.0, 54.0],  # near heel
+        ]
+    )
+    low[:, 0] = 2000.0 + facing * (low[:, 0] - 2000.0)
+    assert facing_from_feet(low, 1218.0) == facing
+    # Without the heels neither reading has markers on both sides: the feet abstain.
+    assert facing_from_feet(low[:2], 1218.0) == 0
