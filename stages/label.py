@@ -45,10 +45,10 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
    track; a lone far blob only on last frame's track, and not when the other site's
    live track lies nearer it, in (forward, height) or across its viewing ray); ambiguity
-   is judged on the joint hypotheses, for the near labels and the far ones alike (a near
-   label is ambiguous too when its blob could as well be the far heel's or toe's, the near
-   slot left empty: ``_clear_of_far_foot``); a lone near foot marker, or an ankle whose
-   heel and toe that test left out, needs a fresh track. Foot tracks widen with the time unseen
+   is judged on the joint hypotheses, for the near labels and the far ones alike (a foot
+   label is ambiguous too when the other foot could as well take its blob, its own slot
+   left empty: ``_clear_of_other_foot``); a lone near foot marker, or an ankle whose heel
+   and toe that test left out, needs a fresh track. Foot tracks widen with the time unseen
    (``FOOT_SPEED_SIG``: swing onset); an untracked far heel (toe) pays for a blob the near
    heel's (toe's) fresh track claims, and a tracked thigh wand for one the knee's fresh
    track claims (judged across the blob's viewing ray, along which a layer in front moves
@@ -715,21 +715,21 @@ def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float)
     return ((T[m] < K) & (alt - cost[m] >= margin)).tolist()
 
 
-def _clear_of_far_foot(
-    total: np.ndarray, slot: np.ndarray, T2: np.ndarray, b: int, r: int, margin: float
+def _clear_of_other_foot(
+    total: np.ndarray, leaves: np.ndarray, takes: np.ndarray, margin: float
 ) -> bool:
-    """Is near blob ``b``, held by a slot of near hypothesis ``r``, clearly not the far heel
-    or toe? Every joint hypothesis whose near slot leaves ``b`` while its far completion
-    takes it as heel or toe must cost at least ``margin`` more than the best one.
+    """Is a foot label's blob clearly not the other foot's? Every joint hypothesis in which
+    the label's slot leaves the blob (``leaves``) while the other foot takes it (``takes``)
+    must cost at least ``margin`` more than the best one.
 
-    ``total`` (R, A2): near hypothesis by far completion; ``slot`` (R,): the slot's blob in
-    each near hypothesis; ``T2`` (A2, 3): the far completions (heel, toe, tibia absorber).
-    :func:`_unambiguous` counts only hypotheses giving the slot another blob: one leaving it
-    empty, the blob going to the far foot, never made a near label ambiguous.
+    ``total`` (R, A2): near hypothesis by far completion; ``leaves`` and ``takes`` broadcast
+    to it ((R, 1) for the near foot's slots, (1, A2) for the far foot's). The ambiguity
+    tests (:func:`_unambiguous`, :func:`_far_unambiguous`) count only hypotheses giving the
+    slot another blob: one leaving it empty, the blob going to the other foot, never made a
+    label ambiguous, however close.
     """
-    far_b = (T2[:, :2] == b).any(axis=1)
-    alt = total[(slot != b)[:, None] & far_b[None, :]]
-    return not alt.size or float(alt.min()) - float(total[r].min()) >= margin
+    alt = total[np.broadcast_to(leaves & takes, total.shape)]
+    return not alt.size or float(alt.min()) - float(total.min()) >= margin
 
 
 def _far_unambiguous(
@@ -1508,7 +1508,15 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             # first frames, the far foot took all three near foot labels.
             keep = [
                 kept
-                and (k == 0 or _clear_of_far_foot(total, Tn[:, k], T2, int(tf[k]), r, fr.ambiguity))
+                and (
+                    k == 0
+                    or _clear_of_other_foot(
+                        total,
+                        (Tn[:, k] != tf[k])[:, None],
+                        (T2[:, :2] == tf[k]).any(axis=1)[None, :],
+                        fr.ambiguity,
+                    )
+                )
                 for k, kept in enumerate(keep)
             ]
             # A lone foot marker (the other two of ANK, HEE, TOE missing) has no foot
@@ -1525,6 +1533,22 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                         continue
                     chosen[i] = int(tf[k])
             keep2 = _far_unambiguous(total, T2, j, K, fr.ambiguity)
+            # ... and a far heel or toe whose blob the near foot could as well take, the far
+            # slot left empty (the far labels took the near heel's and toe's blobs while
+            # the near foot went unnamed).
+            keep2 = [
+                kept
+                and (
+                    k == 2
+                    or _clear_of_other_foot(
+                        total,
+                        (T2[:, k] != tp[k])[None, :],
+                        (Tn[:, 1:] == tp[k]).any(axis=1)[:, None],
+                        fr.ambiguity,
+                    )
+                )
+                for k, kept in enumerate(keep2)
+            ]
             # A lone far-foot blob is heel or toe only if last frame's track says which.
             lone = int((tp[:2] < K).sum()) == 1
             if tp[2] < K:

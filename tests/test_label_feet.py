@@ -767,19 +767,29 @@ def test_an_ankle_left_alone_by_the_ambiguity_test_needs_a_fresh_track() -> None
     assert a[MARKER_INDEX["L_ANK"]] == 5
 
 
-def test_a_near_blob_the_far_heel_could_take_is_ambiguous() -> None:
-    # Two near hypotheses (rows) by three far completions (columns). Hypothesis 0 gives the
-    # slot blob 2 and is the best (10.0). Hypothesis 1 leaves the slot empty (K = 4) and its
-    # completion 1 takes blob 2 as the far heel, at 12.0: within a margin of 4, not clear.
+def test_a_blob_the_other_foot_could_take_is_ambiguous() -> None:
+    # Two near hypotheses (rows) by three far completions (columns: far heel, toe, tibia
+    # absorber; K = 4 is "missing"). Near hypothesis 0 gives its slot blob 2 and is the best
+    # (10.0); near hypothesis 1 leaves the slot empty and its far completion 1 takes blob 2
+    # as the far heel, at 12.0: within a margin of 4 the near label is not clear.
     total = np.array([[10.0, 30.0, 30.0], [20.0, 12.0, 25.0]])
     slot = np.array([2, 4])
     T2 = np.array([[4, 4, 4], [2, 4, 4], [4, 2, 4]])
-    assert not label._clear_of_far_foot(total, slot, T2, 2, 0, 4.0)
-    assert label._clear_of_far_foot(total, slot, T2, 2, 0, 1.5)
+
+    def near_clear(T2: np.ndarray, margin: float) -> bool:
+        far_takes = (T2[:, :2] == 2).any(axis=1)[None, :]
+        return label._clear_of_other_foot(total, (slot != 2)[:, None], far_takes, margin)
+
+    assert not near_clear(T2, 4.0)
+    assert near_clear(T2, 1.5)
     # The far tibia wand's absorber taking the blob does not count (it only removes blobs).
-    T2 = np.array([[4, 4, 4], [4, 4, 2], [4, 4, 4]])
-    assert label._clear_of_far_foot(total, slot, T2, 2, 0, 4.0)
-    # Nor does a completion of a hypothesis that keeps the blob in the slot.
-    total = np.array([[10.0, 11.0, 30.0], [20.0, 30.0, 25.0]])
+    assert near_clear(np.array([[4, 4, 4], [4, 4, 2], [4, 4, 4]]), 4.0)
+    # The far side the same way: far completion 1 gives the far heel blob 2 (10.0 with near
+    # hypothesis 0); near hypothesis 1 takes blob 2 as its heel, the far heel empty, 13.0.
+    total = np.array([[15.0, 10.0, 30.0], [13.0, 40.0, 25.0]])
+    Tn = np.array([[0, 4, 4, 4], [0, 4, 2, 4]])  # TIB, ANK, HEE, TOE
     T2 = np.array([[4, 4, 4], [2, 4, 4], [4, 4, 4]])
-    assert label._clear_of_far_foot(total, slot, T2, 2, 0, 4.0)
+    leaves = (T2[:, 0] != 2)[None, :]
+    near_takes = (Tn[:, 1:] == 2).any(axis=1)[:, None]
+    assert not label._clear_of_other_foot(total, leaves, near_takes, 4.0)
+    assert label._clear_of_other_foot(total, leaves, near_takes, 3.0)
