@@ -138,6 +138,9 @@ FOOT_HEIGHT_WEIGHT = 0.5
 # Two foot markers within this height (mm) of each other are equally "the highest", the
 # ankle's mark in facing_from_feet.
 FOOT_HEIGHT_TIE = 15.0
+# A foot marker less than this far (mm, along the walking axis) from the ankle lies on
+# neither side of it (facing_from_feet).
+FOOT_SIDE_MM = 20.0
 
 # The floor frame's fallback (FloorFrame.from_record), declared once for every stage that
 # builds one.
@@ -314,9 +317,10 @@ def _foot_of(low: np.ndarray, ank: int, sho_height: float) -> np.ndarray:
 
 
 def _between(low: np.ndarray, ank: int, sho_height: float) -> bool:
-    """Does the ankle ``ank`` have foot markers both behind and ahead of it (by 20 mm)?"""
+    """Does the ankle ``ank`` have foot markers both behind and ahead of it (by at least
+    ``FOOT_SIDE_MM``)?"""
     da = _foot_of(low, ank, sho_height)
-    return bool((da < -20.0).any() and (da > 20.0).any())
+    return bool((da < -FOOT_SIDE_MM).any() and (da > FOOT_SIDE_MM).any())
 
 
 def _toe_side(low: np.ndarray, ank: int, sho_height: float) -> int:
@@ -327,7 +331,7 @@ def _toe_side(low: np.ndarray, ank: int, sho_height: float) -> int:
     if len(da) == 0:
         return 0
     s = float(da[np.argmax(np.abs(da))])
-    return 0 if abs(s) < 20.0 else int(np.sign(s))
+    return 0 if abs(s) < FOOT_SIDE_MM else int(np.sign(s))
 
 
 def _facing_from_mass(pts: np.ndarray, sho_h: float) -> int:
