@@ -21,7 +21,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 3. the walking direction is the sign of the shoulder's velocity along a (first sight:
    toward the far end of the walkway, or, when a track that ended for misses restarts
    within ``restart_frames`` frames, the shoulder blob's move since the last frame
-   (``_shoulder_move``); then ``flip_frames`` frames against it to change).
+   (``_shoulder_move``), or in mid-walkway the lost track's direction; near an end without
+   a move, labels wait until the new track walks along the line); then ``flip_frames``
+   frames against it to change).
    The side facing the camera follows (walking toward +u shows the right side). A change of
    direction resets every track and re-acquires the near shoulder: the return pass shows
    the other side (the L/R swap). While turning (slow along the line, or heading off it)
@@ -932,6 +934,7 @@ def label_frame(
     # Direction (with hysteresis) and near side.
     va = float(st.sho_x[3])
     direction, flips = st.direction, st.flip_count
+    guessed = False
     if direction == 0:
         # First sight: walking toward the far end of the walkway from where it appears.
         direction = 1 if float(st.sho_x[0]) < 0.5 * ff.length else -1
@@ -955,6 +958,12 @@ def label_frame(
                 # lost track's direction stands (a child's shoulder missed three frames
                 # running restarted facing the wrong way for 7 frames).
                 direction = st.sho_lost_direction
+            else:
+                # Near an end of the walkway, where people turn round, "toward the far end"
+                # is a guess: the track is taken as having walked, so that the turn test
+                # holds the labels until its velocity runs along the line (turning in view,
+                # the track lost mid-turn restarted on the wrong side).
+                guessed = True
     elif abs(va) > p["dir_speed"] and np.sign(va) != direction:
         flips += 1
         if flips >= p["flip_frames"]:
@@ -971,7 +980,7 @@ def label_frame(
                 sho_blob = -1
     else:
         flips = 0
-    walked = st.walked or abs(va) > p["dir_speed"]
+    walked = st.walked or abs(va) > p["dir_speed"] or guessed
     near = "R" if direction > 0 else "L"
     # Turning: slow along the line, backwards, or heading off the line (the near shoulder
     # swings away from the camera as the body turns).

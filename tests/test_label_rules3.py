@@ -145,6 +145,37 @@ def test_restart_after_six_lost_frames_takes_the_direction_from_the_shoulder_mov
     assert assign[MARKER_INDEX["R_SHO"]] == 0
 
 
+def _restart_without_a_move(a_frac: float, lost: int) -> tuple:
+    """label_frame on a shoulder track (and body blobs) found again at ``a_frac`` of the
+    walkway, standing where it was last frame; the last track ended for misses in frame
+    ``lost`` walking toward +a. Returns (state, assign)."""
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    a0 = a_frac * ff.length
+    body = [[a0 + 20.0, 60.0, h] for h in (0.45 * H, 0.55 * H, 0.65 * H)]
+    now = np.array([[a0, 0.0, H], *body])
+    st = label.init(label.PARAMS.resolve({}))
+    st = replace(st, trial="walk-01", frame=99, sho_lost=lost, sho_lost_direction=1, prev_q=now)
+    pos = np.repeat(to_camera(now)[:, None, :], 3, axis=1)
+    return label.label_frame(st, pos, 100, ff, geo)
+
+
+def test_a_track_restarted_near_an_end_without_a_move_labels_only_once_it_walks() -> None:
+    # btk_PiG_Motion3_FF on ``inview`` (turning in view), frames 97-101: the shoulder track,
+    # lost in mid-turn, restarted near the walkway's end with no move to measure; "toward
+    # the far end" named a side and the frames were labelled on it, then the track was
+    # lost and restarted once more on the other side. Such a restart now counts as having
+    # walked, so the turn test (too slow along the line) holds every label.
+    st, assign = _restart_without_a_move(0.9, lost=95)
+    assert st.walked and (assign == -1).all()
+    # The same restart in mid-walkway keeps the lost track's direction and labels at once,
+    # and a pass's first sight near an end (no track lost lately) as before.
+    for a_frac, lost in ((0.5, 95), (0.9, -1000)):
+        st, assign = _restart_without_a_move(a_frac, lost)
+        assert not st.walked and (assign >= 0).any()
+
+
 def test_untracked_far_foot_does_not_take_the_near_heel_and_toe_at_a_pass_start() -> None:
     # HC002D seed 2 frames 25-26 (seed 0: 30-31): a pass's first frame, no tracks; the
     # near foot 40 mm deeper than the standing offsets say (the shoulder's depth error),
