@@ -48,9 +48,10 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    track; a lone far blob only on last frame's track, and not when the other site's
    live track lies nearer it, in (forward, height) or across its viewing ray); ambiguity
    is judged on the joint hypotheses, for the near labels and the far ones alike (a foot
-   label is ambiguous too when the other foot could as well take its blob, its own slot
-   left empty: ``_clear_of_other_foot``); a lone near foot marker, or an ankle whose heel
-   and toe that test left out, needs a fresh track. Foot tracks widen with the time unseen
+   label is ambiguous too when the other foot, or for a near label another near foot
+   marker, could as well take its blob, its own slot left empty: ``_clear_of_other_foot``);
+   a lone near foot marker, or an ankle whose heel and toe that test left out, needs a
+   fresh track. Foot tracks widen with the time unseen
    (``FOOT_SPEED_SIG``: swing onset); an untracked far heel (toe) pays for a blob the near
    heel's (toe's) fresh track claims, and a tracked thigh wand for one the knee's fresh
    track claims (judged across the blob's viewing ray, along which a layer in front moves
@@ -720,14 +721,15 @@ def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float)
 def _clear_of_other_foot(
     total: np.ndarray, leaves: np.ndarray, takes: np.ndarray, margin: float
 ) -> bool:
-    """Is a foot label's blob clearly not the other foot's? Every joint hypothesis in which
-    the label's slot leaves the blob (``leaves``) while the other foot takes it (``takes``)
-    must cost at least ``margin`` more than the best one.
+    """Is a foot label's blob clearly not another marker's? Every joint hypothesis in which
+    the label's slot leaves the blob (``leaves``) while another slot takes it (``takes``:
+    the other foot's heel or toe, or for a near label another near foot slot) must cost at
+    least ``margin`` more than the best one.
 
     ``total`` (R, A2): near hypothesis by far completion; ``leaves`` and ``takes`` broadcast
     to it ((R, 1) for the near foot's slots, (1, A2) for the far foot's). The ambiguity
     tests (:func:`_unambiguous`, :func:`_far_unambiguous`) count only hypotheses giving the
-    slot another blob: one leaving it empty, the blob going to the other foot, never made a
+    slot another blob: one leaving it empty, its blob going to another marker, never made a
     label ambiguous, however close.
     """
     alt = total[np.broadcast_to(leaves & takes, total.shape)]
@@ -1513,8 +1515,10 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             # the far foot's is judged with the far foot's completion counted.
             keep = _unambiguous(total.min(axis=1), T[order], int(r), K, fr.ambiguity)
             # ... and so is a foot label whose blob could as well be the far heel's or toe's,
-            # the near slot left empty: with the near foot beyond the image's edge at a pass's
-            # first frames, the far foot took all three near foot labels.
+            # or another marker's of the near foot, with its own slot left empty: with the
+            # near foot beyond the image's edge at a pass's first frames, the far foot took
+            # all three near foot labels; with the heel hidden, the ankle's blob took the
+            # heel label and left the ankle empty, 2 above the other reading.
             keep = [
                 kept
                 and (
@@ -1522,7 +1526,8 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                     or _clear_of_other_foot(
                         total,
                         (Tn[:, k] != tf[k])[:, None],
-                        (T2[:, :2] == tf[k]).any(axis=1)[None, :],
+                        (T2[:, :2] == tf[k]).any(axis=1)[None, :]
+                        | (np.delete(Tn, k, axis=1) == tf[k]).any(axis=1)[:, None],
                         fr.ambiguity,
                     )
                 )

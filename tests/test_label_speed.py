@@ -111,7 +111,7 @@ def test_hypothesis_tables_equal_row_by_row_evaluation() -> None:
 PINNED = {
     5: [-1, -1, -1, -1, -1, -1, -1, -1, 10, 5, 11, -1, -1, 2, 8, 0, 14, 13, 4, 3],
     21: [-1, -1, -1, -1, -1, -1, -1, -1, 13, 2, 5, -1, -1, 8, 3, 9, 7, 6, -1, 0],
-    31: [-1, -1, -1, -1, -1, -1, -1, -1, 10, -1, 12, -1, -1, 9, 0, -1, 7, -1, 4, -1],
+    31: [-1, -1, -1, -1, -1, -1, -1, -1, 10, -1, 12, -1, -1, 9, 0, -1, 7, -1, -1, -1],
     59: [-1, -1, -1, -1, -1, -1, -1, -1, 8, 1, 12, -1, -1, 5, 13, 10, 14, 9, 6, 2],
     75: [7, -1, -1, 5, 0, 3, 12, 6, 9, 8, -1, -1, -1, -1, -1, -1, -1, -1, 11, 10],
     111: [10, -1, -1, 6, 14, 8, 7, 3, 9, 13, -1, -1, -1, -1, -1, -1, -1, -1, 4, 12],
@@ -128,8 +128,11 @@ PINNED = {
 # (frame 12, right by the walk's truth, now left out as possibly the far heel); and after a
 # shoulder track restarted near the walkway's end without a move waits until it walks: the
 # return pass's first frame (60, after a 10-frame gap, within restart_frames) is unlabelled,
-# its 10 labels were right by the walk's truth; every later frame is as before.
-PINNED_COUNTS = [59, 0, 0, 58, 59, 59, 59, 57, 115, 113, 60, 0, 0, 58, 60, 57, 60, 55, 111, 115]
+# its 10 labels were right by the walk's truth; every later frame is as before; and after a
+# near foot label whose blob another near foot marker could as well take was judged
+# ambiguous: 9 foot labels fewer around the occlusions (frames 23-25, 31-32, 100-103),
+# one of them wrong (frame 23: R_HEE on the ankle's blob, the heel occluded), 8 right.
+PINNED_COUNTS = [59, 0, 0, 58, 59, 59, 59, 56, 112, 113, 60, 0, 0, 58, 60, 57, 60, 53, 108, 115]
 
 
 def test_labelling_pinned_on_a_noisy_walk_with_occlusions(subject: SubjectModel) -> None:  # noqa: F811
