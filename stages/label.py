@@ -49,7 +49,7 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    live track lies nearer it, in (forward, height) or across its viewing ray); ambiguity
    is judged on the joint hypotheses, for the near labels and the far ones alike (a foot
    label is ambiguous too when the other foot, or for a near label another near foot
-   marker, could as well take its blob, its own slot left empty: ``_clear_of_other_foot``);
+   marker, could as well take its blob, its own slot left empty: ``_clear_of_other_markers``);
    a lone near foot marker, or an ankle whose heel and toe that test left out, needs a
    fresh track. Foot tracks widen with the time unseen
    (``FOOT_SPEED_SIG``: swing onset); an untracked far heel (toe) pays for a blob the near
@@ -718,7 +718,7 @@ def _unambiguous(cost: np.ndarray, T: np.ndarray, m: int, K: int, margin: float)
     return ((T[m] < K) & (alt - cost[m] >= margin)).tolist()
 
 
-def _clear_of_other_foot(
+def _clear_of_other_markers(
     total: np.ndarray, leaves: np.ndarray, takes: np.ndarray, margin: float
 ) -> bool:
     """Is a foot label's blob clearly not another marker's? Every joint hypothesis in which
@@ -1518,12 +1518,12 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             # or another marker's of the near foot, with its own slot left empty: with the
             # near foot beyond the image's edge at a pass's first frames, the far foot took
             # all three near foot labels; with the heel hidden, the ankle's blob took the
-            # heel label and left the ankle empty, 2 above the other reading.
+            # heel label, the ankle left empty, at 2.3 less than the reading the other way.
             keep = [
                 kept
                 and (
                     k == 0
-                    or _clear_of_other_foot(
+                    or _clear_of_other_markers(
                         total,
                         (Tn[:, k] != tf[k])[:, None],
                         (T2[:, :2] == tf[k]).any(axis=1)[None, :]
@@ -1554,7 +1554,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
                 kept
                 and (
                     k == 2
-                    or _clear_of_other_foot(
+                    or _clear_of_other_markers(
                         total,
                         (T2[:, k] != tp[k])[None, :],
                         (Tn[:, 1:] == tp[k]).any(axis=1)[:, None],

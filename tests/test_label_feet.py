@@ -767,7 +767,7 @@ def test_an_ankle_left_alone_by_the_ambiguity_test_needs_a_fresh_track() -> None
     assert a[MARKER_INDEX["L_ANK"]] == 5
 
 
-def test_a_blob_the_other_foot_could_take_is_ambiguous() -> None:
+def test_a_blob_another_marker_could_take_is_ambiguous() -> None:
     # Two near hypotheses (rows) by three far completions (columns: far heel, toe, tibia
     # absorber; K = 4 is "missing"). Near hypothesis 0 gives its slot blob 2 and is the best
     # (10.0); near hypothesis 1 leaves the slot empty and its far completion 1 takes blob 2
@@ -778,7 +778,7 @@ def test_a_blob_the_other_foot_could_take_is_ambiguous() -> None:
 
     def near_clear(T2: np.ndarray, margin: float) -> bool:
         far_takes = (T2[:, :2] == 2).any(axis=1)[None, :]
-        return label._clear_of_other_foot(total, (slot != 2)[:, None], far_takes, margin)
+        return label._clear_of_other_markers(total, (slot != 2)[:, None], far_takes, margin)
 
     assert not near_clear(T2, 4.0)
     assert near_clear(T2, 1.5)
@@ -791,14 +791,14 @@ def test_a_blob_the_other_foot_could_take_is_ambiguous() -> None:
     T2 = np.array([[4, 4, 4], [2, 4, 4], [4, 4, 4]])
     leaves = (T2[:, 0] != 2)[None, :]
     near_takes = (Tn[:, 1:] == 2).any(axis=1)[:, None]
-    assert not label._clear_of_other_foot(total, leaves, near_takes, 4.0)
-    assert label._clear_of_other_foot(total, leaves, near_takes, 3.0)
+    assert not label._clear_of_other_markers(total, leaves, near_takes, 4.0)
+    assert label._clear_of_other_markers(total, leaves, near_takes, 3.0)
     # Within the near foot: hypothesis 0 names blob 2 heel (ANK empty), hypothesis 1 names
     # it ankle (HEE empty), 2.3 more: the heel label is not clear.
     total = np.array([[12.5, 30.0], [14.8, 30.0]])
     Tn = np.array([[0, 4, 2, 3], [0, 2, 4, 3]])
     others = (np.delete(Tn, 2, axis=1) == 2).any(axis=1)[:, None]
-    assert not label._clear_of_other_foot(total, (Tn[:, 2] != 2)[:, None], others, 4.0)
+    assert not label._clear_of_other_markers(total, (Tn[:, 2] != 2)[:, None], others, 4.0)
 
 
 def _hidden_heel_frame() -> np.ndarray:
