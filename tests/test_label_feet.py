@@ -687,8 +687,8 @@ def _far_foot_only_frame() -> np.ndarray:
         [-3238.0, -254.0, 1422.0],  # 0 L_SHO
         [-2938.0, -9.0, 39.0],  # 1 R_TOE
         [-3022.0, -30.0, 78.0],  # 2 R_ANK
-        [-3273.0, -205.0, 458.0],  # 3 L_THI
-        [-3249.0, -208.0, 613.0],  # 4
+        [-3273.0, -205.0, 458.0],  # 3 L_KNE
+        [-3249.0, -208.0, 613.0],  # 4 L_THI
         [-3101.0, -48.0, 48.0],  # 5 R_HEE
     ]
     geo = _geometry_of(
@@ -720,7 +720,7 @@ def test_the_far_foot_alone_in_view_is_not_named_the_near_foot() -> None:
 def _lone_ankle_frame(ankle_track: bool) -> np.ndarray:
     """btk_PiG_Motion3_FF on ``low+near+d20+slow+skew``, frame 253: the walk back's second
     labelled frame (near side L), the near ankle just beyond the image's edge, its toe (5) in
-    view; the far foot's toe (8) and mostly hidden ankle (1) 160-180 mm deeper. The hip,
+    view; the far foot's toe (7) and mostly hidden ankle (1) 160-180 mm deeper. The hip,
     thigh wand and knee have one-frame tracks. ``ankle_track``: a near ankle track, one frame
     old, on blob 5."""
     blobs = [
@@ -803,7 +803,7 @@ def test_a_blob_another_marker_could_take_is_ambiguous() -> None:
 
 def _hidden_heel_frame() -> np.ndarray:
     """bz_HC003B_straight_HC003B08 (a held-out walk of ../shared/gaitdata), frame 116, near
-    side R: the near heel hidden, its ankle (5), toe (6) and tibia wand (8) seen; the ankle,
+    side R: the near heel hidden, its ankle (4), toe (5) and tibia wand (7) seen; the ankle,
     heel and toe tracks three frames old."""
     blobs = [
         [3393.0, -86.0, 436.0],  # 0 R_KNE
