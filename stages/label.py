@@ -1120,8 +1120,7 @@ def _huge(radius: np.ndarray | None, n: int) -> np.ndarray:
     ratio = None if radius is None or len(radius) != n else _size_ratio(radius, 5)
     if ratio is None:
         return np.zeros(n, bool)
-    with np.errstate(invalid="ignore"):
-        return ratio > HUGE_BLOB
+    return ratio > HUGE_BLOB  # NaN compares False: a blob without r_m is not huge
 
 
 STILL_MOVE_MM = 20.0  # the shoulder's move per frame below which nothing is judged still
@@ -1938,8 +1937,7 @@ def _merged(radius: np.ndarray, ratio: float) -> np.ndarray | None:
     size = _size_ratio(radius, 3) if ratio > 0 else None
     if size is None:
         return None
-    with np.errstate(invalid="ignore"):
-        return size >= ratio
+    return size >= ratio
 
 
 def fill_modes(pos: np.ndarray) -> np.ndarray:
