@@ -416,3 +416,41 @@ def test_bad_input_with_splitting_is_bounded(kind: str) -> None:
     else:
         assert out.status == "too-many"
         assert np.isfinite(out.centroid).all()
+
+
+def _four_markers(gain: float) -> np.ndarray:
+    img = frame((60, 160), noise=10.0, seed=3)
+    for i, g in enumerate((0.3, 0.45, 0.7, 1.0)):
+        disc(img, 20.0 + 38.0 * i, 30.0, 2.5, g * gain)
+    return u16(img)
+
+
+def test_alg1_step6_never_raises_the_threshold_over_unsaturated_markers() -> None:
+    # Markers that do not saturate (peaks 6 000-20 000): from a history threshold that keeps
+    # only the two brightest (f = 2 < n = 4), the literal step 6 pulls e_d towards the
+    # history's bright largest blob, above every marker. The option keeps e_d instead.
+    ir = _four_markers(20000.0)
+    hist = (detect.HistoryEntry(12000.0, 60000.0, 3.0),)
+    literal = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4))
+    det = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4, step6_saturated_only=True))
+    assert literal.threshold > 20000.0
+    assert literal.blobs.count == 0
+    assert det.threshold == 12000.0
+    assert det.blobs.count == 2
+    roi = detect.compact_roi(ir, 3000.0)
+    assert not detect.saturated(roi, detect.components(roi, 12000.0)).any()
+
+
+def test_alg1_step6_over_saturated_markers_is_the_literal_one() -> None:
+    # The same scene with saturated markers (every core clipped at full scale): raising
+    # e_d loses none of them, and the option changes nothing.
+    ir = _four_markers(400000.0)
+    hist = (detect.HistoryEntry(20000.0, 65000.0, 3.0),)
+    a = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=5))
+    b = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=5, step6_saturated_only=True))
+    roi = detect.compact_roi(ir, 3000.0)
+    assert detect.saturated(roi, detect.components(roi, 20000.0)).all()
+    assert a.threshold > 40000.0  # step 6 raised e_d (f = 4 < n = 5)
+    assert a.blobs.count == 4
+    assert (a.threshold, a.iterations, a.blobs.count) == (b.threshold, b.iterations, b.blobs.count)
+    np.testing.assert_array_equal(a.centroid, b.centroid)
