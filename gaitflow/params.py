@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from gaitflow.errors import ParameterError
+from gaitflow.errors import InputError, ParameterError
 
 
 @dataclass(frozen=True)
@@ -81,3 +81,22 @@ class ParamSet:
                 f"| {p.name} | {p.type.__name__} | {p.default!r} | {p.unit} | {p.meaning} |"
             )
         return "\n".join(rows)
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """``--param STAGE.NAME=VALUE`` options as per-stage overrides.
+
+    ``["detect.split_cores=true", ...]`` -> ``{"detect": {"split_cores": True}}``. Values are
+    parsed as YAML scalars (true, 0.5, text); each stage's ParamSet checks them when it
+    starts. Raises InputError naming ``--param`` and the item when one is not of that form.
+    """
+    import yaml
+
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        stage, dot, name = key.partition(".")
+        if not sep or not dot or not stage or not name:
+            raise InputError("--param", f"{item!r} is not STAGE.NAME=VALUE")
+        out.setdefault(stage, {})[name] = yaml.safe_load(value)
+    return out

@@ -121,3 +121,38 @@ def test_bench_stages_on_a_few_simulated_frames() -> None:
         assert r["detected"] > 80.0
         assert r["recall@2.5"] > 80.0
         assert r["ms_detect+locate_p99"] > 0
+
+
+@pytest.mark.slow
+def test_bench_parameter_overrides_reach_the_stages_but_not_the_row_keys() -> None:
+    from gaitflow.sim import SimConfig, list_trials, simulate_session
+
+    cfg = SimConfig.quick()
+    rec = simulate_session(list_trials()[0], 0, cfg).recordings["walk-01"]
+    frames = [rec.frame(i) for i in range(30, 34)]
+    mids = mocap.mid_exposure_pixels(frames, mocap.truth_lag_frames(cfg))
+    cal = mocap.session_record(Camera().to_json(marker_diameter_mm=25))
+    rendered = [(r, t, m, cal) for (r, t), m in zip(frames, mids, strict=True)]
+
+    def run(overrides):
+        score = mocap.Score()
+        mocap.run_stages(rendered, "adaptive", score, gate=4.0, overrides=overrides)
+        r = mocap.summarise(score)
+        return r["detected"], r["recall@0.5"]
+
+    plain = run(None)
+    assert plain[0] > 80.0
+    # No marker's image covers 500 px: with that smallest blob, nothing is detected.
+    assert run({"detect": {"min_area": 500}})[0] == 0.0
+    # The row's own method stays: a static override does not turn the adaptive row static.
+    assert run({"detect": {"method": "static"}}) == plain
+
+
+def test_bench_parameter_overrides_are_checked_before_rendering() -> None:
+    from gaitflow.errors import ConfigError, ParameterError
+
+    mocap._check_overrides({"detect": {"step6_saturated_only": True}, "locate": {}})
+    with pytest.raises(ConfigError, match="'gait'"):
+        mocap._check_overrides({"gait": {"xi": 0.1}})
+    with pytest.raises(ParameterError, match="nope"):
+        mocap._check_overrides({"detect": {"nope": 1}})

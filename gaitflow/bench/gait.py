@@ -38,6 +38,7 @@ import numpy as np
 
 from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.markers import MARKER_INDEX
+from gaitflow.params import parse_overrides
 from gaitflow.sim.variants import VARIANTS, variant_changes
 
 MATCH_S = 0.15
@@ -425,23 +426,6 @@ def _nanmean(xs: Sequence[float]) -> float:
     return float(np.mean(v)) if v else float("nan")
 
 
-def _stage_params(items: Sequence[str] | None) -> dict[str, dict[str, Any]]:
-    """``["detect.split_cores=true", ...]`` -> ``{"detect": {"split_cores": True}}``.
-
-    Values are parsed as YAML scalars (true, 0.5, text); the stage's ParamSet checks them.
-    """
-    import yaml
-
-    out: dict[str, dict[str, Any]] = {}
-    for item in items or ():
-        key, sep, value = item.partition("=")
-        stage, dot, name = key.partition(".")
-        if not sep or not dot or not stage or not name:
-            raise SystemExit(f"bench gait: --param {item!r} is not stage.name=value")
-        out.setdefault(stage, {})[name] = yaml.safe_load(value)
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     from gaitflow.sim import list_trials
 
@@ -458,13 +442,13 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         label = float("nan")
         if args.level == "markers":
-            gait_params = {**params, **_stage_params(args.param).get("gait", {})}
+            gait_params = {**params, **parse_overrides(args.param).get("gait", {})}
             doc, truth, t, knee, pig = run_markers_level(
                 trial, args.seed, args.noise_mm, gait_params, args.variant
             )
         else:
             doc, truth, t, knee, pig, label = run_pipeline_level(
-                trial, args.seed, params, args.jobs, _stage_params(args.param), args.variant
+                trial, args.seed, params, args.jobs, parse_overrides(args.param), args.variant
             )
         sc = score_trial(doc, truth, t, knee, pig)
         sc["labelling_pct"] = label

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,6 +45,7 @@ import numpy as np
 from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.errors import ConfigError
 from gaitflow.markers import CLUSTER_MODES, MARKER_NAMES, cluster_mode
+from gaitflow.params import parse_overrides
 from gaitflow.sim.variants import VARIANTS, sim_config, variant_changes
 from gaitflow.stages.label import surface_point
 
@@ -256,18 +257,23 @@ def run_stages(
     refine: bool = False,
     split: bool = False,
     cores: bool = False,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> None:
-    """Run clean -> detect -> locate cores on rendered frames and score them."""
+    """Run clean -> detect -> locate cores on rendered frames and score them.
+
+    ``overrides``: per stage, parameter overrides (``--param``); the detect keys each method
+    row sets (method, refine, split_merged, split_cores) keep the row's values.
+    """
     from gaitflow.stages import clean, detect, locate
 
+    ov = overrides or {}
+    row = {"method": method, "refine": refine, "split_merged": split, "split_cores": cores}
     specs = {
-        "clean": (clean.SPEC, {}),
-        "detect": (
-            detect.SPEC,
-            {"method": method, "refine": refine, "split_merged": split, "split_cores": cores},
-        ),
-        "locate": (locate.SPEC, {}),
+        "clean": (clean.SPEC, dict(ov.get("clean", {}))),
+        "detect": (detect.SPEC, {**ov.get("detect", {}), **row}),
+        "locate": (locate.SPEC, dict(ov.get("locate", {}))),
     }
+
     state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
     clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
     wall = time.perf_counter
@@ -300,8 +306,10 @@ def bench(
     gate: float,
     recording: str = "walk-01",
     refine_ablation: bool = False,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """Render, run and score; returns {variant: {method: figures}}."""
+    """Render, run and score; returns {variant: {method: figures}}. ``overrides``: per
+    stage, parameter overrides for every method row (see :func:`run_stages`)."""
     cv2.setNumThreads(1)  # "on one core"
     methods = ["adaptive", "static"]
     methods += ["adaptive-refine", "adaptive-split", "adaptive-cores"] if refine_ablation else []
@@ -320,9 +328,22 @@ def bench(
                     refine=extra == "refine",
                     split=extra == "split",
                     cores=extra == "cores",
+                    overrides=overrides,
                 )
         results[var] = {m: summarise(s) for m, s in scores.items()}
     return results
+
+
+def _check_overrides(overrides: Mapping[str, Mapping[str, Any]]) -> None:
+    """Fail before any rendering on a stage other than clean, detect and locate, or on a
+    parameter the stage does not declare (ParameterError names it)."""
+    from gaitflow.stages import clean, detect, locate
+
+    stages = {"clean": clean.SPEC, "detect": detect.SPEC, "locate": locate.SPEC}
+    for name, values in overrides.items():
+        if name not in stages:
+            raise ConfigError(f"bench mocap: --param stage {name!r} is not clean, detect or locate")
+        stages[name].params.resolve(values)
 
 
 def numpy_op_us() -> float:
@@ -460,13 +481,22 @@ def _run(args: argparse.Namespace) -> int:
         variant_changes(v)  # names it if unknown, before any trial runs
     t0 = time.perf_counter()
     op_us = numpy_op_us()
+    overrides = parse_overrides(args.param)
+    _check_overrides(overrides)
     results = bench(
-        trials, args.frames, args.seed, variants, args.gate, refine_ablation=args.ablation
+        trials,
+        args.frames,
+        args.seed,
+        variants,
+        args.gate,
+        refine_ablation=args.ablation,
+        overrides=overrides,
     )
     figures = {
         "trials": list(trials),
         "frames_per_trial": args.frames,
         "seed": args.seed,
+        "params": overrides,
         "results": results,
         "paper": {k: {str(a): b for a, b in v.items()} for k, v in PAPER.items()},
         "goals": GOALS,
@@ -503,6 +533,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also run adaptive with the sub-pixel refinement and with merged-blob splitting "
         "(split_merged, and split_cores)",
+    )
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="STAGE.NAME=VALUE",
+        help="a clean, detect or locate parameter override for every method row, e.g. "
+        "detect.step6_saturated_only=true (the row's own method, refine and split keys win)",
     )
     add_json_flag(p)
     p.set_defaults(func=_run)

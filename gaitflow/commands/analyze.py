@@ -49,6 +49,7 @@ from gaitflow.benchutil import format_table
 from gaitflow.errors import InputError, StageError
 from gaitflow.exports import export_formats, write_exports
 from gaitflow.markers import trial_kind
+from gaitflow.params import parse_overrides
 from gaitflow.progress import add_quiet_flag, progress
 from gaitflow.report import side_summary, write_report
 from gaitflow.results import empty_results, write_results
@@ -317,17 +318,6 @@ def summary_table(outcomes: Iterable[TrialOutcome], title: str = "gait summary")
     return format_table(title, cols, rows) + "\n" + note
 
 
-def _param_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
-    out: dict[str, dict[str, Any]] = {}
-    for it in items:
-        key, sep, value = it.partition("=")
-        stage, dot, name = key.partition(".")
-        if not sep or not dot:
-            raise InputError("--param", f"{it!r} is not STAGE.NAME=VALUE")
-        out.setdefault(stage, {})[name] = yaml.safe_load(value)
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     store = StoreTarget(args.store, args.subject, args.date) if args.store else None
     if store is not None and args.out:
@@ -338,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
         args.session_dir,
         args.out,
         inline=args.inline,
-        params=_param_overrides(args.param or []),
+        params=parse_overrides(args.param or []),
         quiet=args.quiet,
         store=store,
     )
