@@ -273,7 +273,6 @@ def run_stages(
         "detect": (detect.SPEC, {**ov.get("detect", {}), **row}),
         "locate": (locate.SPEC, dict(ov.get("locate", {}))),
     }
-
     state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
     clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
     wall = time.perf_counter
@@ -479,10 +478,10 @@ def _run(args: argparse.Namespace) -> int:
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     for v in variants:
         variant_changes(v)  # names it if unknown, before any trial runs
-    t0 = time.perf_counter()
-    op_us = numpy_op_us()
     overrides = parse_overrides(args.param)
     _check_overrides(overrides)
+    t0 = time.perf_counter()
+    op_us = numpy_op_us()
     results = bench(
         trials,
         args.frames,
