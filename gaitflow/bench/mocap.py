@@ -266,14 +266,10 @@ def run_stages(
     """
     from gaitflow.stages import clean, detect, locate
 
-    ov = overrides or {}
+    ov = dict(overrides or {})
     row = {"method": method, "refine": refine, "split_merged": split, "split_cores": cores}
-    specs = {
-        "clean": (clean.SPEC, dict(ov.get("clean", {}))),
-        "detect": (detect.SPEC, {**ov.get("detect", {}), **row}),
-        "locate": (locate.SPEC, dict(ov.get("locate", {}))),
-    }
-    state = {k: s.init(s.params.resolve(o)) for k, (s, o) in specs.items()}
+    ov["detect"] = {**ov.get("detect", {}), **row}
+    state = {k: s.init(s.params.resolve(ov.get(k, {}))) for k, s in _specs().items()}
     clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
     wall = time.perf_counter
     for raw, truth, mid, cal in frames:
@@ -333,12 +329,17 @@ def bench(
     return results
 
 
+def _specs() -> dict[str, Any]:
+    """The three stages the bench runs, by name (their ``SPEC``)."""
+    from gaitflow.stages import clean, detect, locate
+
+    return {"clean": clean.SPEC, "detect": detect.SPEC, "locate": locate.SPEC}
+
+
 def _check_overrides(overrides: Mapping[str, Mapping[str, Any]]) -> None:
     """Fail before any rendering on a stage other than clean, detect and locate, or on a
     parameter the stage does not declare (ParameterError names it)."""
-    from gaitflow.stages import clean, detect, locate
-
-    stages = {"clean": clean.SPEC, "detect": detect.SPEC, "locate": locate.SPEC}
+    stages = _specs()
     for name, values in overrides.items():
         if name not in stages:
             raise ConfigError(f"bench mocap: --param stage {name!r} is not clean, detect or locate")
