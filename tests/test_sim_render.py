@@ -5,23 +5,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gaitflow.errors import ConfigError
 from gaitflow.sim.config import SimConfig
 from gaitflow.sim.render import SAT, FramePose, Renderer, axial_sigma_mm
 from gaitflow.sim.truth import merged_flags, visibility
 
+# Fronto-parallel wall at Z = 2.5 m: the camera looks straight at it.
+FLAT_SCENE = dict(
+    tilt_deg=0.0,
+    pan_deg=0.0,
+    roll_deg=0.0,
+    walk_distance_mm=1000.0,
+    back_wall_mm=1500.0,
+    stray_reflectors=False,
+)
+
 
 @pytest.fixture(scope="module")
 def flat_renderer() -> Renderer:
-    # Fronto-parallel wall at Z = 2.5 m: the camera looks straight at it.
-    cfg = SimConfig(
-        tilt_deg=0.0,
-        pan_deg=0.0,
-        roll_deg=0.0,
-        walk_distance_mm=1000.0,
-        back_wall_mm=1500.0,
-        stray_reflectors=False,
-    )
-    return Renderer(cfg)
+    return Renderer(SimConfig(**FLAT_SCENE))
 
 
 def _pose(centre_world: np.ndarray, blur: int = 1) -> FramePose:
@@ -235,3 +237,37 @@ def test_static_reflector_saturates_in_an_empty_scene_and_hides_behind_the_body(
     )
     hid = r.render(arm, np.random.default_rng(5))
     assert hid.ir[win].max() < 20000 and (hid.depth[win] == 0).sum() == 0
+
+
+def test_lens_glare_widens_the_depth_hole_and_pulls_the_ring_towards_the_marker(
+    flat_renderer: Renderer,
+) -> None:
+    plain, glared = flat_renderer, Renderer(SimConfig(glare_fraction=0.03, **FLAT_SCENE))
+    c_cam = np.array([31.0, -17.0, 2000.0])  # half a metre before the wall
+    outs = [r.render(_pose(c_cam @ r.R + r.C), np.random.default_rng(0)) for r in (plain, glared)]
+    uv = plain.cam.project(c_cam[None])[0]
+    v, u = round(uv[1]), round(uv[0])
+    near = (slice(v - 5, v + 6), slice(u - 5, u + 6))
+    sat = [(o.ir[near] == SAT).sum() for o in outs]
+    hole = [(o.depth[near] == 0).sum() for o in outs]
+    assert sat[1] == sat[0]  # the marker's image is the same
+    # A 4.6 px disc's hole grown by about a pixel all round: at least 1.8 times the area.
+    assert hole[1] >= 1.8 * hole[0], hole
+    # Where depth is still valid next to the hole, the stray light pulls it nearer (the
+    # sphere's front is about 0.5 m nearer than the wall behind it).
+    both = (outs[0].depth[near] > 0) & (outs[1].depth[near] > 0)
+    pull = outs[1].depth[near][both].astype(float) - outs[0].depth[near][both]
+    assert pull.min() < -20.0 and np.median(pull) <= 0.0
+    # Stray light brightens the IR around the marker, and nothing far from it changes.
+    ring = outs[1].ir[near].astype(float) - outs[0].ir[near]
+    assert (ring[outs[0].ir[near] < SAT] > 0).sum() >= 20
+    far = (slice(v - 40, v - 20), slice(u - 40, u - 20))
+    assert np.array_equal(outs[1].ir[far], outs[0].ir[far])
+    assert np.array_equal(outs[1].depth[far], outs[0].depth[far])
+
+
+def test_lens_glare_settings_are_checked() -> None:
+    with pytest.raises(ConfigError, match=r"glare_fraction=0\.6"):
+        SimConfig(glare_fraction=0.6)
+    with pytest.raises(ConfigError, match="glare_sigma_px=0"):
+        SimConfig(glare_fraction=0.03, glare_sigma_px=0.0)

@@ -67,6 +67,13 @@ class SimConfig:
     flying_prob: float = 0.5  # an edge pixel becomes a mixed-depth ("flying") pixel
     edge_invalid_prob: float = 0.25  # an edge pixel becomes invalid (0)
     hole_coverage: float = 0.25  # marker coverage above which depth is 0
+    # Lens glare: this share of each marker's light scattered over a Gaussian of
+    # glare_sigma_px around it, pulling the depth there towards the marker's and making it
+    # invalid where the stray light is more than glare_invalid_share of a pixel's light
+    # (render._glare). 0 = none (the default).
+    glare_fraction: float = 0.0
+    glare_sigma_px: float = 1.2
+    glare_invalid_share: float = 0.25
     # Frames.
     drop_prob: float = 0.01
     jitter_ms: float = 0.4
@@ -143,6 +150,11 @@ class SimConfig:
         if any(len(o) != 3 or not all(math.isfinite(v) for v in o) for o in self.shoe_reflectors):
             raise ConfigError(
                 f"SimConfig.shoe_reflectors={self.shoe_reflectors!r}: each must be three finite mm"
+            )
+        if not 0.0 <= self.glare_fraction < 0.5 or self.glare_sigma_px <= 0:
+            raise ConfigError(
+                f"SimConfig.glare_fraction={self.glare_fraction} must be in [0, 0.5) and"
+                f" glare_sigma_px={self.glare_sigma_px} positive"
             )
         if self.n_walks < 1:
             raise ConfigError(f"SimConfig.n_walks={self.n_walks} must be >= 1")

@@ -23,6 +23,9 @@ Effects, per frame:
   covered ones mix marker and background depth. Axial noise follows Fankhauser et al.
   (2015), see :func:`axial_sigma_mm`. Depth edges give flying (mixed) and invalid pixels.
   Out-of-range (0.5-4.5 m), grazing and low-amplitude pixels are 0.
+- Lens glare (optional, ``glare_fraction``; :meth:`Renderer._glare`): stray marker light
+  around each marker's image brightens the IR and pulls the depth there towards the
+  marker's, or invalidates it, so the depth hole grows beyond the marker's image.
 """
 
 from __future__ import annotations
@@ -278,11 +281,13 @@ class Renderer:
         finite = np.isfinite(z)
         zf = np.where(finite, z, 0.0)
         zf = self._marker_depth(zf, self.bg_cover, self.bg_zmark)
+        self.bg_ir, zf, glared = self._glare(self.bg_ir, zf, self.bg_cover, self.bg_zmark)
         theta = np.arccos(self.bg_cos)
         self.bg_zf = zf.astype(np.float32)
         sigma = cfg.depth_noise_scale * axial_sigma_mm(np.maximum(zf, 1.0), theta)
         self.bg_sigma = sigma.astype(np.float32)
         bad = self._invalid(finite, zf, theta, self.bg_ir) | (self.bg_cover >= cfg.hole_coverage)
+        bad |= glared
         self.bg_valid = (~bad).astype(np.float32)
         self.bg_edges = self._edge_pixels(zf)
         self.bg_ir32 = self.bg_ir.astype(np.float32)
@@ -461,11 +466,12 @@ class Renderer:
             irb = self._marker_radiance(irb, cover, zmark, box)
             finite = np.isfinite(z)
             zf = self._marker_depth(np.where(finite, z, 0.0), cover, zmark)
+            irb, zf, glared = self._glare(irb, zf, cover, zmark, box)
             theta = np.arccos(np.clip(cosi, 0.0, 1.0))
             sigma = cfg.depth_noise_scale * axial_sigma_mm(np.maximum(zf, 1.0), theta)
             db = zf + sigma * n_depth[box]
             self._apply_edges(db, self._edge_pixels(zf), rng)
-            bad = self._invalid(finite, zf, theta, irb) | (cover >= cfg.hole_coverage)
+            bad = self._invalid(finite, zf, theta, irb) | (cover >= cfg.hole_coverage) | glared
             depth[box] = np.where(bad, 0.0, db)
             ir_sd = np.sqrt(cfg.ir_read_noise**2 + cfg.ir_shot_noise * np.maximum(irb, 0.0))
             ir[box] = irb + ir_sd * n_ir[box]
@@ -488,9 +494,53 @@ class Renderer:
         hit = cover > 0
         if not hit.any():
             return ir
+        return np.where(hit, self._marker_light(cover, zmark, box) + (1.0 - cover) * ir, ir)
+
+    def _marker_light(
+        self, cover: np.ndarray, zmark: np.ndarray, box: tuple[slice, slice]
+    ) -> np.ndarray:
+        """The light the marker spheres return into each pixel (0 where none covers it)."""
+        hit = cover > 0
         rm = np.where(hit, zmark, 1.0) * self.rlen[box] / 1000.0
         rad = self.cfg.marker_gain * SAT * (2.5 / np.maximum(rm, 0.1)) ** 2
-        return np.where(hit, cover * rad + (1.0 - cover) * ir, ir)
+        return np.where(hit, cover * rad, 0.0)
+
+    def _glare(
+        self,
+        ir: np.ndarray,
+        zf: np.ndarray,
+        cover: np.ndarray,
+        zmark: np.ndarray,
+        box: tuple[slice, slice] = (slice(None), slice(None)),
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lens glare around the markers: (IR, depth, pixels whose depth it invalidates).
+
+        The optics scatter ``glare_fraction`` of each marker's light over the pixels around
+        it (a Gaussian of ``glare_sigma_px``). A time-of-flight pixel measures the phase of
+        all the light it gets, so the stray light, which carries the marker's depth, pulls
+        the pixel's depth towards it by its share of the pixel's light (a linear mix: the
+        phasor sum for depths within a fraction of the modulation wavelength), and where
+        that share exceeds ``glare_invalid_share`` the depth is reported invalid: the hole
+        around a marker grows beyond the marker's image. Off (``glare_fraction`` 0) by
+        default; the ``glare`` variant turns it on.
+        """
+        cfg = self.cfg
+        none = np.zeros(ir.shape, dtype=bool)
+        if cfg.glare_fraction <= 0.0 or not (cover > 0).any():
+            return ir, zf, none
+        from scipy.ndimage import gaussian_filter
+
+        light = self._marker_light(cover, zmark, box)
+        spread = dict(sigma=cfg.glare_sigma_px, mode="constant", truncate=3.0)
+        stray = cfg.glare_fraction * gaussian_filter(light, **spread)
+        stray_z = gaussian_filter(light * np.where(cover > 0, zmark, 0.0), **spread)
+        own = ir - cfg.glare_fraction * light  # the marker keeps what it does not scatter
+        total = own + stray
+        share = np.divide(stray, total, out=np.zeros_like(total), where=total > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z_stray = np.where(stray > 0, cfg.glare_fraction * stray_z / stray, 0.0)
+        mixed = np.where((zf > 0) & (stray > 0), (1.0 - share) * zf + share * z_stray, zf)
+        return total, mixed, (share > cfg.glare_invalid_share) & (cover < cfg.hole_coverage)
 
     def _marker_depth(self, zf: np.ndarray, cover: np.ndarray, zmark: np.ndarray) -> np.ndarray:
         """Depth with the spheres' partly covered pixels mixing both surfaces (a pixel

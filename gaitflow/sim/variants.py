@@ -145,6 +145,12 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
         "markers returning under a tenth of the default's light: a quarter of full scale on"
         " the walking line, 7 times the skin's IR (outside what the method is built for)",
     ),
+    "glare": (
+        {"glare_fraction": 0.03},
+        "lens glare around the markers: 3 % of their light scattered over the pixels around"
+        " them, which brightens the IR there and pulls the depth towards the marker's or makes"
+        " it invalid: depth holes about a pixel wider than the markers' images",
+    ),
     "mirror": (
         {"start_side": "right"},
         "the camera on the walkway's other side: the subject starts at the image's right edge"
