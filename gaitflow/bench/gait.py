@@ -39,7 +39,7 @@ import numpy as np
 from gaitflow.benchutil import add_json_flag, emit, format_table
 from gaitflow.markers import MARKER_INDEX
 from gaitflow.params import parse_overrides
-from gaitflow.sim.variants import VARIANTS, variant_changes
+from gaitflow.sim.variants import variant_changes, variants_help
 
 MATCH_S = 0.15
 GOALS = {
@@ -597,7 +597,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="NAME[+NAME...]",
         help="simulated set-up (gaitflow.sim.variants; at the markers level only what moves "
         "the markers or their frame times matters; join names with + to combine set-ups, "
-        "e.g. child+far+noisy): " + "; ".join(f"{k}: {v[1]}" for k, v in VARIANTS.items()),
+        "e.g. child+far+noisy): " + variants_help(),
     )
     p.add_argument("--xi", type=float, default=None, help="override Alg. 6 xi = phi")
     p.add_argument("--refine", choices=("velocity", "none"), default=None)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from gaitflow.errors import InputError
-from gaitflow.sim.variants import VARIANTS
+from gaitflow.sim.variants import variants_help
 
 PREVIEW_PATH = Path("docs/img/sim-preview.png")
 
@@ -195,8 +195,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="base",
         metavar="NAME[+NAME...]",
         help="a named set-up of `gaitflow bench gait --variant` (default base; join names "
-        "with + to combine them, e.g. child+far+noisy): "
-        + "; ".join(f"{k}: {v[1]}" for k, v in VARIANTS.items() if k != "base"),
+        "with + to combine them, e.g. child+far+noisy): " + variants_help(skip_base=True),
     )
     p.add_argument(
         "--max-frames", type=int, default=None, help="keep only the first N frames of each"

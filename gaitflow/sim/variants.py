@@ -164,6 +164,13 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
 }
 
 
+def variants_help(skip_base: bool = False) -> str:
+    """Every set-up with its description, for a command's ``--help`` (argparse's ``%``
+    escaped)."""
+    items = (f"{k}: {v[1]}" for k, v in VARIANTS.items() if not (skip_base and k == "base"))
+    return "; ".join(items).replace("%", "%%")
+
+
 def variant_changes(name: str) -> dict[str, Any]:
     """The SimConfig changes of variant ``name``; ConfigError naming it if unknown.
 
