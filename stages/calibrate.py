@@ -29,7 +29,12 @@ Departures from the paper (see docs/readme/labelling.md):
   [A-4b]; the final record's status is ``Done`` whenever the calibration is geometrically
   usable (C markers, diagonals cross, plane fits), the residual camera pose is recorded in
   ``tilt_deg``, ``pan_deg`` and ``offset_mm``: a recording cannot move its camera, and the
-  3D labelling does not need an exactly sagittal view.
+  3D labelling does not need an exactly sagittal view;
+- w (line 9) is the modal IR of the partly covered pixels on the edge of the marker's pixels
+  brighter than ``bright_ratio`` times the background's p99, the level that makes a new
+  marker pixel: dimmer pixels around a marker are stray light (lens glare) or the scene,
+  and a w read there (640-896 against 8 832-16 000 on the simulator's ``glare`` set-up) let
+  ``clean`` and detect's Alg. 1 anchor take the body for bright components.
 """
 
 from __future__ import annotations
@@ -433,7 +438,12 @@ def _new_blobs(
         blob = grown & ((sub - sub_bg) > 0.1 * t_bright)
         e_d = float(sub[blob].min())
         u, v, r_m, r_r = blob_stats(sub, blob, e_d)
-        edge = blob & ~cv2.erode(blob.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        # w is read on the edge of the blob's pixels brighter than a new marker pixel must
+        # be (t_bright): under lens glare the ring around a marker holds its stray light, a
+        # few hundred counts, and w read there fell to the level of the scene itself (clean
+        # then took the whole body for bright components).
+        bright = (blob & (sub > t_bright)).astype(np.uint8)
+        edge = (bright > 0) & ~cv2.erode(bright, np.ones((3, 3), np.uint8)).astype(bool)
         # Saturated edge pixels say nothing about where the marker fades into the floor;
         # the partly covered ones do.
         partial = edge & (sub < 0.98 * float(sub[blob].max()))

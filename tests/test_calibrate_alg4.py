@@ -183,3 +183,19 @@ def test_helpers_on_literals() -> None:
     assert calibrate.ring_depth(depth, 9.5, 9.5, 2.0) == 2000.0
     with pytest.raises(Exception, match="camera"):
         calibrate.camera_from_param({"focal": 1.0})
+
+
+def test_w_ignores_stray_light_around_a_floor_marker() -> None:
+    p = calibrate.PARAMS.resolve({})
+    bg = np.full((30, 30), 300.0)
+    ir = bg.copy()
+    ir[14:17, 14:17] = 65535.0  # the saturated core
+    for v, u in ((13, 15), (17, 15), (15, 13), (15, 17)):
+        ir[v, u] = 20000.0  # partly covered edge pixels
+    plain = calibrate._new_blobs(ir, bg, None, p)[0]
+    # Lens glare: stray light a few hundred counts above the floor all round the marker,
+    # below the level a new marker pixel must reach (3 x the background's p99 = 900).
+    halo = (np.hypot(*np.mgrid[-15:15, -15:15]) < 5.0) & (ir == 300.0)
+    glared = calibrate._new_blobs(np.where(halo, 700.0, ir), bg, None, p)[0]
+    assert len(plain) == len(glared) == 1
+    assert plain[0][4] == glared[0][4] == pytest.approx(20000.0, abs=256.0)

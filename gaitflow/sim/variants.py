@@ -143,7 +143,7 @@ VARIANTS: dict[str, tuple[dict[str, Any], str]] = {
     "faint": (
         {"marker_gain": 0.3},
         "markers returning under a tenth of the default's light: a quarter of full scale on"
-        " the walking line, 7 times the skin's IR (outside what the method is built for)",
+        " the walking line, 7 times the skin's IR (the method is built on markers that saturate)",
     ),
     "glare": (
         {"glare_fraction": 0.03},
