@@ -35,19 +35,23 @@ Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and
   three quarters of full scale keeps every pixel at least 3/4 covered by a marker. On the
   simulator this raised detection from 91.8 to 95.7 % with markers 3.5 m away and from 96.1
   to 97.1 % on a second trial at 2.75 m, and changed nothing where e_d stayed below it.
-- **Step 6 over unsaturated blobs (optional departure, ``step6_saturated_only``, off by
-  default).** With fewer blobs than n, step 6 moves e_d to a weighted mean of w, the
-  blobs' mean IR and the history's largest blob's. For saturated markers that mean lies
-  near full scale and a higher e_d loses none of them (their cores stay above any e_d up
-  to ``max_threshold``). For markers that do not saturate (worn or dim ones, the
-  simulator's ``dim``) it lies above the dimmer markers' peaks, so step 6 *raised* e_d
-  while blobs were missing and lost more of them. With the option, step 6 raises e_d only
-  when every blob holds a saturated pixel, and otherwise keeps it (the loop ends there).
-  ``gaitflow bench mocap --all --frames 60 --variants base,dim``: ``dim`` detected 84.61
-  -> 90.36 %, recall at 0.5 px 81.47 -> 86.42 %; the defaults 93.98 % unchanged (recall
-  81.84 -> 81.74 %). It is off by default because the label stage does worse with some of
-  the blobs it keeps at a pass's first frames, where half-hidden markers do not saturate
-  and e_d then stays low (README, gait section, "Markers that do not saturate").
+- **Step 6 over unsaturated blobs (departure, ``step6_saturated_only``, on by default
+  since the twenty-fifth session).** With fewer blobs than n, step 6 moves e_d to a
+  weighted mean of w, the blobs' mean IR and the history's largest blob's. For saturated
+  markers that mean lies near full scale and a higher e_d loses none of them (their cores
+  stay above any e_d up to ``max_threshold``). For markers that do not saturate (worn or
+  dim ones, the simulator's ``dim`` and ``faint``) it lies above the dimmer markers' peaks,
+  so step 6 *raised* e_d while blobs were missing and lost more of them. With the option,
+  step 6 raises e_d only when every blob holds a saturated pixel, and otherwise keeps it
+  (the loop ends there), **until the camera's markers are seen to saturate**: a frame whose
+  blobs include ``saturating_markers`` (4) saturated ones sets ``CameraState
+  .markers_saturate``, kept for the camera's later frames and trials (the static pose,
+  every marker in view, usually sets it), and from then on step 6 is the printed one.
+  Without that flag the option kept e_d low at a pass's first frames, where half-hidden
+  markers do not saturate, and their rims misled the label stage (twenty-fourth session,
+  when the option was off by default). With it, every simulated set-up whose markers
+  saturate gives the printed rule's output, and ``dim`` and ``faint`` label 99.6 %
+  (README, gait section, "Markers that do not saturate").
 - **Alg. 2** uses the weight ``P - e_d`` [A-2a] and ``r_r = max l`` [A-2b].
 - **Speed.** The ROI's float image and each mosaic pixel's frame (u, v) are made once per
   frame (:class:`Roi`), so Alg. 1's iterations only threshold, label and ``bincount``;
@@ -117,7 +121,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -202,10 +206,20 @@ PARAMS = ParamSet(
         Param(
             "step6_saturated_only",
             bool,
-            False,
+            True,
             "-",
-            "Alg. 1 step 6 raises e_d only when every blob is saturated (optional departure"
-            " for markers that do not saturate, see the module doc); false = as printed",
+            "Alg. 1 step 6 raises e_d only when every blob is saturated, until the markers are"
+            " seen saturating (departure for markers that do not, see the module doc);"
+            " false = as printed",
+        ),
+        Param(
+            "saturating_markers",
+            int,
+            4,
+            "blobs",
+            "with step6_saturated_only: a frame with this many saturated blobs shows that the"
+            " camera's markers saturate, and step 6 is the printed one from then on",
+            low=1,
         ),
         Param("max_blobs", int, 64, "blobs", "keep at most this many (largest) blobs", low=1),
         Param(
@@ -990,8 +1004,8 @@ def adaptive_threshold(
     max_iterations : cap on the loop of steps 3-10.
     e_cap : highest threshold tried (departure, see ``max_threshold``).
     jit : compiled statistics in :func:`components` (identical result).
-    saturated_only : step 6 raises e_d only when every blob is saturated (optional
-        departure, see ``step6_saturated_only`` in the module doc).
+    saturated_only : step 6 raises e_d only when every blob is saturated (departure, see
+        ``step6_saturated_only`` in the module doc).
 
     Returns
     -------
@@ -1103,6 +1117,9 @@ class CameraState:
     w: float
     r_b: float
     history: tuple[HistoryEntry, ...] = ()
+    # The camera's markers were seen saturating (``saturating_markers``); kept from trial
+    # to trial of the camera: the static pose, all markers in view, usually tells.
+    markers_saturate: bool = False
 
 
 @dataclass(frozen=True)
@@ -1125,6 +1142,7 @@ class Detection:
     status: str
     history_entry: HistoryEntry
     candidates: int  # blobs before the max_blobs cut
+    saturated_blobs: int = 0  # blobs holding a saturated pixel (counted only when needed)
 
 
 def detect_frame(
@@ -1133,6 +1151,7 @@ def detect_frame(
     r_b: float,
     history: tuple[HistoryEntry, ...],
     params: Mapping[str, Any],
+    markers_saturate: bool = False,
 ) -> Detection:
     """Alg. 1 + Alg. 2 on one IR frame (pure).
 
@@ -1142,6 +1161,8 @@ def detect_frame(
     w, r_b : anchor threshold and blob base radius.
     history : Alg. 1 scan window, oldest first.
     params : resolved :data:`PARAMS`.
+    markers_saturate : the camera's markers were seen saturating: step 6 is the printed one
+        even with ``step6_saturated_only``.
     """
     p = params
     jit = p["jit"]
@@ -1157,6 +1178,7 @@ def detect_frame(
         e_low = bg + p["refine_fraction"] * max(floor - bg, 0.0)
         level = min(e_low, floor)
     roi = compact_roi(ir, level, p["block"], bm, jit=jit)
+    saturated_only = p["step6_saturated_only"] and not markers_saturate
     if p["method"] == "static":
         comps = components(
             roi, e_static, p["min_area"], p["connectivity"], p["max_region_radius"], jit=jit
@@ -1175,10 +1197,11 @@ def detect_frame(
             p["max_region_radius"],
             max(p["max_threshold"], roi.level),
             jit,
-            p["step6_saturated_only"],
+            saturated_only,
         )
     # Alg. 1's history entry is of the blobs it settled on, before any split.
     k1, u1 = _largest(comps)
+    n_saturated = int(saturated(roi, comps).sum()) if saturated_only else 0
     centroid = comps.centroid
     if p["refine"] and comps.count:
         centroid = refine_centroids(roi, comps, e_low, p["connectivity"])
@@ -1204,7 +1227,9 @@ def detect_frame(
         status = "empty"
     if comps.count > p["max_blobs"]:
         status = "too-many"
-    return Detection(comps, centroid, comps.threshold, iterations, status, entry, comps.count)
+    return Detection(
+        comps, centroid, comps.threshold, iterations, status, entry, comps.count, n_saturated
+    )
 
 
 def _anchor(ir: np.ndarray, cal: CalibrationRecord | None, p: Mapping[str, Any]) -> tuple:
@@ -1239,13 +1264,14 @@ def step(state: DetectState, inputs: Inputs) -> tuple[DetectState, list]:
     ir = np.asarray(frame.ir)
     if cs is None or cs.trial != trial:
         w, r_b = _anchor(ir, cal, p)
-        cs = CameraState(trial, w, r_b)
+        cs = CameraState(trial, w, r_b, markers_saturate=cs is not None and cs.markers_saturate)
     elif cs.r_b <= 0:  # no blob seen yet to derive r_b from
-        cs = CameraState(trial, cs.w, _anchor(ir, cal, p)[1], cs.history)
-    det = detect_frame(ir, cs.w, cs.r_b if cs.r_b > 0 else 2.0, cs.history, p)
+        cs = replace(cs, r_b=_anchor(ir, cal, p)[1])
+    det = detect_frame(ir, cs.w, cs.r_b if cs.r_b > 0 else 2.0, cs.history, p, cs.markers_saturate)
     history = (*cs.history, det.history_entry)[-p["b"] :]
     cams = dict(state.cameras)
-    cams[cam] = CameraState(trial, cs.w, cs.r_b, history)
+    seen = cs.markers_saturate or det.saturated_blobs >= p["saturating_markers"]
+    cams[cam] = replace(cs, history=history, markers_saturate=seen)
     c = det.blobs
     keep = np.argsort(-c.area, kind="stable")[: p["max_blobs"]]
     keep.sort()

@@ -431,7 +431,7 @@ def test_alg1_step6_never_raises_the_threshold_over_unsaturated_markers() -> Non
     # history's bright largest blob, above every marker. The option keeps e_d instead.
     ir = _four_markers(20000.0)
     hist = (detect.HistoryEntry(12000.0, 60000.0, 3.0),)
-    literal = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4))
+    literal = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4, step6_saturated_only=False))
     det = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4, step6_saturated_only=True))
     assert literal.threshold > 20000.0
     assert literal.blobs.count == 0
@@ -446,7 +446,7 @@ def test_alg1_step6_over_saturated_markers_is_the_literal_one() -> None:
     # e_d loses none of them, and the option changes nothing.
     ir = _four_markers(400000.0)
     hist = (detect.HistoryEntry(20000.0, 65000.0, 3.0),)
-    a = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=5))
+    a = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=5, step6_saturated_only=False))
     b = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=5, step6_saturated_only=True))
     roi = detect.compact_roi(ir, 3000.0)
     assert detect.saturated(roi, detect.components(roi, 20000.0)).all()
@@ -454,3 +454,44 @@ def test_alg1_step6_over_saturated_markers_is_the_literal_one() -> None:
     assert a.blobs.count == 4
     assert (a.threshold, a.iterations, a.blobs.count) == (b.threshold, b.iterations, b.blobs.count)
     np.testing.assert_array_equal(a.centroid, b.centroid)
+
+
+def test_alg1_step6_is_the_literal_one_where_the_markers_were_seen_saturating() -> None:
+    ir = _four_markers(20000.0)
+    hist = (detect.HistoryEntry(12000.0, 60000.0, 3.0),)
+    literal = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4, step6_saturated_only=False))
+    seen = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4), markers_saturate=True)
+    kept = detect.detect_frame(ir, 3000.0, 2.5, hist, params(n=4))
+    assert (seen.threshold, seen.blobs.count) == (literal.threshold, literal.blobs.count)
+    assert (kept.threshold, kept.blobs.count) == (12000.0, 2)
+
+
+def test_detect_learns_from_saturated_blobs_that_the_markers_saturate() -> None:
+    # Four saturated markers in one frame tell the stage that this camera's markers
+    # saturate; the flag holds for its later frames and trials, not for another camera.
+    p = params(n=5, saturating_markers=4)
+    dim, bright = _four_markers(20000.0), _four_markers(400000.0)
+    st = detect.init(p)
+    st, _ = detect.step(st, {"clean": clean_msg(dim)})
+    assert not st.cameras["cam0"].markers_saturate
+    st, (out,) = detect.step(st, {"clean": clean_msg(bright, idx=1)})
+    assert out.centroid.shape[0] == 4
+    assert st.cameras["cam0"].markers_saturate
+    st, _ = detect.step(st, {"clean": clean_msg(dim, trial="walk-02")})
+    assert st.cameras["cam0"].markers_saturate
+    other = clean_msg(dim)
+    other = CleanFrame(
+        header=CleanFrame.make_header("cam1", "walk-01", 0, 0),
+        ir=other.ir,
+        depth=other.depth,
+        mask=other.mask,
+    )
+    st, _ = detect.step(st, {"clean": other})
+    assert not st.cameras["cam1"].markers_saturate
+    # Three saturated blobs are not enough at saturating_markers = 4.
+    img = frame((60, 160), noise=10.0, seed=3)
+    for i, peak in enumerate((400000.0, 400000.0, 400000.0, 15000.0)):
+        disc(img, 20.0 + 38.0 * i, 30.0, 2.5, peak)
+    st3, (out3,) = detect.step(detect.init(p), {"clean": clean_msg(u16(img))})
+    assert out3.centroid.shape[0] >= 3  # the three saturated markers
+    assert not st3.cameras["cam0"].markers_saturate
