@@ -34,9 +34,11 @@ def params(**kw):
     return detect.PARAMS.resolve(kw)
 
 
-def clean_msg(ir: np.ndarray, trial: str = "walk-01", idx: int = 0) -> CleanFrame:
+def clean_msg(
+    ir: np.ndarray, trial: str = "walk-01", idx: int = 0, camera: str = "cam0"
+) -> CleanFrame:
     return CleanFrame(
-        header=CleanFrame.make_header("cam0", trial, idx, idx * 33_000_000),
+        header=CleanFrame.make_header(camera, trial, idx, idx * 33_000_000),
         ir=ir,
         depth=np.full(ir.shape, 2500, np.uint16),
         mask=np.zeros(ir.shape, np.uint8),
@@ -479,14 +481,7 @@ def test_detect_learns_from_saturated_blobs_that_the_markers_saturate() -> None:
     assert st.cameras["cam0"].markers_saturate
     st, _ = detect.step(st, {"clean": clean_msg(dim, trial="walk-02")})
     assert st.cameras["cam0"].markers_saturate
-    other = clean_msg(dim)
-    other = CleanFrame(
-        header=CleanFrame.make_header("cam1", "walk-01", 0, 0),
-        ir=other.ir,
-        depth=other.depth,
-        mask=other.mask,
-    )
-    st, _ = detect.step(st, {"clean": other})
+    st, _ = detect.step(st, {"clean": clean_msg(dim, camera="cam1")})
     assert not st.cameras["cam1"].markers_saturate
     # Three saturated blobs are not enough at saturating_markers = 4.
     img = frame((60, 160), noise=10.0, seed=3)
