@@ -490,3 +490,109 @@ def test_detect_learns_from_saturated_blobs_that_the_markers_saturate() -> None:
     st3, (out3,) = detect.step(detect.init(p), {"clean": clean_msg(u16(img))})
     assert out3.centroid.shape[0] >= 3  # the three saturated markers
     assert not st3.cameras["cam0"].markers_saturate
+
+
+# ---- split_tracked: a blob split into the two markers the previous frame saw apart
+
+
+def pair_frame(centres: list[tuple[float, float]], seed: int) -> np.ndarray:
+    img = frame(noise=10.0, seed=seed)
+    for u, v in centres:
+        disc(img, u, v, 1.9, 3 * 65535.0)
+    return u16(img)
+
+
+SINGLES = [(20.4, 20.7), (120.6, 90.1)]
+
+
+def tracked_run(ir: np.ndarray, previous: np.ndarray | None, on: bool = True):
+    p = detect.PARAMS.resolve({"n": 4, "split_tracked": on})
+    return detect.detect_frame(ir, 45000.0, 2.5, (), p, previous=previous)
+
+
+@pytest.mark.parametrize("gap", [2.6, 3.0, 3.4])
+def test_merged_pair_seen_apart_in_the_frame_before_is_split(gap: float) -> None:
+    # Heel and ankle 6 px apart, then overlapping (one blob, one centroid between them)
+    # after the foot moved 7 px: the frame before tells the blob holds two markers.
+    before = [(60.2, 50.3), (65.0, 53.9), *SINGLES]
+    after = [(67.1, 50.6), (67.1 + gap * 0.8, 50.6 + gap * 0.6), *SINGLES]
+    first = tracked_run(pair_frame(before, 1), None)
+    assert first.blobs.count == 4
+    off = tracked_run(pair_frame(after, 2), first.record, on=False)
+    assert off.blobs.count == 3  # the pair is one blob
+    on = tracked_run(pair_frame(after, 2), first.record)
+    assert on.blobs.count == 4
+    err = nearest(on.centroid, after)
+    assert err.max() < 0.5, err  # the bench's strictest recall radius
+    # the other blobs keep their Alg. 2 statistics exactly
+    for c in off.centroid[nearest(off.centroid, SINGLES, axis=1) < 0.5]:
+        assert np.min(np.hypot(*(on.centroid - c).T)) == 0.0
+    # the next frame, still merged, is split again from the split parts
+    later = [(u + 5.0, v) for u, v in after[:2]] + SINGLES
+    again = tracked_run(pair_frame(later, 3), on.record)
+    assert again.blobs.count == 4
+    assert nearest(again.centroid, later).max() < 0.5
+
+
+def test_a_marker_hidden_beside_another_does_not_split_it() -> None:
+    # The ankle is hidden in the second frame: the heel's blob did not grow, so the
+    # previous frame's pair does not split it.
+    before = [(60.2, 50.3), (65.0, 53.9), *SINGLES]
+    first = tracked_run(pair_frame(before, 1), None)
+    alone = [(62.0, 50.5), *SINGLES]
+    det = tracked_run(pair_frame(alone, 2), first.record)
+    assert det.blobs.count == 3
+    assert nearest(det.centroid, alone).max() < 0.3
+    # and a split pair whose blob shrinks to one marker's is not split any more
+    merged = [(67.1, 50.6), (69.5, 52.4), *SINGLES]
+    split = tracked_run(pair_frame(merged, 3), first.record)
+    assert split.blobs.count == 4
+    det = tracked_run(pair_frame([(70.0, 51.0), *SINGLES], 4), split.record)
+    assert det.blobs.count == 3
+
+
+def test_a_blob_without_a_previous_pair_is_not_split() -> None:
+    merged = [(67.1, 50.6), (69.5, 52.4), *SINGLES]
+    assert tracked_run(pair_frame(merged, 3), None).blobs.count == 3
+    # two markers far apart in the frame before are no pair
+    far = [(40.2, 50.3), (67.8, 51.5), *SINGLES]
+    first = tracked_run(pair_frame(far, 1), None)
+    assert tracked_run(pair_frame(merged, 3), first.record).blobs.count == 3
+
+
+def test_the_stage_carries_the_previous_blobs_within_a_trial_only() -> None:
+    p = {"n": 4, "split_tracked": True, "default_w": 45000.0, "default_r_b": 2.5}
+    before = pair_frame([(60.2, 50.3), (65.0, 53.9), *SINGLES], 1)
+    merged = pair_frame([(67.1, 50.6), (69.5, 52.4), *SINGLES], 2)
+    state = detect.init(detect.PARAMS.resolve(p))
+    state, _ = detect.step(state, {"clean": clean_msg(before, idx=0)})
+    state, (out,) = detect.step(state, {"clean": clean_msg(merged, idx=1)})
+    assert len(out.centroid) == 4
+    state, _ = detect.step(state, {"clean": clean_msg(before, idx=0)})
+    state, (out,) = detect.step(state, {"clean": clean_msg(merged, trial="walk-02", idx=0)})
+    assert len(out.centroid) == 3  # a new trial starts without the previous frame
+
+
+def test_every_splitter_together_keeps_each_part_once() -> None:
+    # split_tracked, split_cores and split_merged in turn. A part one of them appended has
+    # no pixels of its own in ``labels`` and is left to the next: the halves of a large
+    # pair among small markers are 1.5-3x the median area, split_merged's candidates (it
+    # crashed on them).
+    small = [(20.4, 20.7), (120.6, 90.1), (100.3, 30.2), (30.8, 95.4)]
+
+    def scene(pair: list[tuple[float, float]], seed: int) -> np.ndarray:
+        img = frame(noise=10.0, seed=seed)
+        for u, v in pair:
+            disc(img, u, v, 2.4, 3 * 65535.0)
+        for u, v in small:
+            disc(img, u, v, 1.3, 3 * 65535.0)
+        return u16(img)
+
+    before, after = [(60.2, 50.3), (66.0, 54.6)], [(67.1, 50.6), (70.0, 52.6)]
+    opts = {"split_tracked": True, "split_cores": True, "split_merged": True}
+    p = detect.PARAMS.resolve({"n": 6, **opts})
+    first = detect.detect_frame(scene(before, 1), 45000.0, 2.5, (), p)
+    assert first.blobs.count == 6
+    det = detect.detect_frame(scene(after, 2), 45000.0, 2.5, (), p, previous=first.record)
+    assert det.blobs.count == 6
+    assert nearest(det.centroid, after + small).max() < 0.5

@@ -47,6 +47,7 @@ from gaitflow.errors import ConfigError
 from gaitflow.markers import CLUSTER_MODES, MARKER_NAMES, cluster_mode
 from gaitflow.params import parse_overrides
 from gaitflow.sim.variants import VARIANTS, sim_config, variant_changes
+from gaitflow.stages.detect import nearest_first_pairs
 from gaitflow.stages.label import surface_point
 
 BETAS = (0.5, 1.5, 2.5)
@@ -90,18 +91,7 @@ def match(pred: np.ndarray, truth: np.ndarray, gate: float) -> list[tuple[int, i
     if pred.size == 0 or truth.size == 0:
         return []
     d = np.hypot(pred[:, None, 0] - truth[None, :, 0], pred[:, None, 1] - truth[None, :, 1])
-    pairs = np.argwhere(d <= gate)
-    order = np.argsort(d[pairs[:, 0], pairs[:, 1]], kind="stable")
-    used_p: set[int] = set()
-    used_t: set[int] = set()
-    out = []
-    for i, j in pairs[order]:
-        if i in used_p or j in used_t:
-            continue
-        used_p.add(int(i))
-        used_t.add(int(j))
-        out.append((int(i), int(j), float(d[i, j])))
-    return out
+    return [(i, j, float(d[i, j])) for i, j in nearest_first_pairs(d, gate)]
 
 
 def score_frame(
@@ -249,25 +239,36 @@ def mid_exposure_pixels(frames: list, lag: float) -> list[np.ndarray]:
     return list(pix - lag * np.nan_to_num(vel))
 
 
+# The detect option each ablation row turns on (``adaptive-<name>``); every row sets all
+# of them, so that a ``--param`` cannot change what a row means.
+ABLATIONS = {
+    "refine": "refine",
+    "split": "split_merged",
+    "cores": "split_cores",
+    "tracked": "split_tracked",
+}
+
+
 def run_stages(
     frames: list,
     method: str,
     score: Score,
     gate: float,
-    refine: bool = False,
-    split: bool = False,
-    cores: bool = False,
+    ablation: str = "",
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> None:
     """Run clean -> detect -> locate cores on rendered frames and score them.
 
+    ``ablation``: a key of :data:`ABLATIONS` (that detect option on), or empty (all off).
     ``overrides``: per stage, parameter overrides (``--param``); the detect keys each method
-    row sets (method, refine, split_merged, split_cores) keep the row's values.
+    row sets (method and the :data:`ABLATIONS` options) keep the row's values.
     """
     from gaitflow.stages import clean, detect, locate
 
+    if ablation and ablation not in ABLATIONS:
+        raise ConfigError(f"bench mocap: unknown ablation {ablation!r} (known: {list(ABLATIONS)})")
     ov = dict(overrides or {})
-    row = {"method": method, "refine": refine, "split_merged": split, "split_cores": cores}
+    row = {"method": method, **{key: a == ablation for a, key in ABLATIONS.items()}}
     ov["detect"] = {**ov.get("detect", {}), **row}
     state = {k: s.init(s.params.resolve(ov.get(k, {}))) for k, s in _specs().items()}
     clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
@@ -307,7 +308,7 @@ def bench(
     stage, parameter overrides for every method row (see :func:`run_stages`)."""
     cv2.setNumThreads(1)  # "on one core"
     methods = ["adaptive", "static"]
-    methods += ["adaptive-refine", "adaptive-split", "adaptive-cores"] if refine_ablation else []
+    methods += [f"adaptive-{a}" for a in ABLATIONS] if refine_ablation else []
     results: dict[str, Any] = {}
     for var in variants:
         scores = {m: Score() for m in methods}
@@ -315,16 +316,7 @@ def bench(
             rendered = render_frames(trial, seed, var, frames, recording)
             for m in methods:
                 base, _, extra = m.partition("-")
-                run_stages(
-                    rendered,
-                    base,
-                    scores[m],
-                    gate,
-                    refine=extra == "refine",
-                    split=extra == "split",
-                    cores=extra == "cores",
-                    overrides=overrides,
-                )
+                run_stages(rendered, base, scores[m], gate, extra, overrides=overrides)
         results[var] = {m: summarise(s) for m, s in scores.items()}
     return results
 
@@ -531,8 +523,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ablation",
         action="store_true",
-        help="also run adaptive with the sub-pixel refinement and with merged-blob splitting "
-        "(split_merged, and split_cores)",
+        help="also run adaptive with each optional detect step: the sub-pixel refinement and "
+        "the three ways of splitting merged blobs (split_merged, split_cores, split_tracked)",
     )
     p.add_argument(
         "--param",
