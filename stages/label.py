@@ -58,7 +58,8 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    it); without a fresh knee track, a blob at the thigh's length from the hip is left to the
    limb search (``KNEE_RING``). Then the limb (KNE: thigh and shank lengths to HIP and
    ANK; THI and TIB on their segments, ``_on_segment``, up to the subject's standing
-   offset off the segment's line; the thigh wand above the knee marker, always; near knee
+   offset off the segment's line; the thigh wand above the knee marker, always, and never
+   more than ``THI_RISE`` of the thigh above its standing height; near knee
    and thigh at the near leg's depth, far knee and thigh, deeper, absorb their blobs; the
    pelvis's hip label is a slot too, and dropped when the leg below contradicts it; the
    blob on the knee's fresh track is kept from the foot search).
@@ -289,6 +290,9 @@ NEAR_HIP_DEEP = 160.0
 # Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
 # the foot search leaves to the limb search when the knee has no fresh track (see _lower).
 KNEE_RING = 0.5
+# Highest rise of the thigh wand above its standing height, as a share of the thigh's
+# length: hip flexion of 60 degrees lifts a wand at mid-thigh by a quarter of it.
+THI_RISE = 0.5
 # The largest standing wand offset off its segment's line taken from a static pose, as a
 # share of the segment's length (the 12 trials: up to 0.25, MAC_Walk1's thigh); see _on_segment.
 WAND_OFF_MAX = 0.35
@@ -1662,6 +1666,13 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             h3.forbid((k,), lambda p: ~(p[:, 1] < ref_e + 50.0))
     for k in (0, 1):
         h3.forbid((k,), lambda p: p[:, 2] > 0.6 * kne_h)
+    # Nor does the thigh wand rise far above where the static pose measured it (moved with
+    # the shoulder track's bob): hip flexion lifts it by a share of its distance from the
+    # hip, THI_RISE of the thigh's length even in a high-stepping gait. Without this, at a
+    # pass's first frames the thigh label took the hip's blob and the knee label the
+    # thigh's, and the tracks held the leg shifted by one marker for half a second.
+    thi_top = sho[2] - H + geo.rel_sho("near", "THI")[2] + THI_RISE * thigh
+    h3.forbid((1,), lambda p: p[:, 2] < thi_top)
     # The thigh wand sits on the thigh, above the knee marker, whatever else is seen. It
     # may sit only 50-70 mm above the knee; when this counted only with all five slots
     # filled, a frame without a hip label let the two swap.

@@ -143,3 +143,53 @@ def test_a_pass_first_sight_keeps_the_far_end_guess() -> None:
     # No track before: a blob entering the image moves with its visible part, so its move
     # is not trusted.
     assert _restart(move=35.0, lost=False) == -1
+
+
+def _recorded_frame(name: str) -> tuple[label._Frame, label.Geometry, np.ndarray, float, float]:
+    """A label stage working frame recorded from a simulated walk (``tests/data``)."""
+    import json
+    from pathlib import Path
+
+    doc = json.loads((Path(__file__).parent / "data" / name).read_text())
+    f, g = doc["frame"], doc["geometry"]
+    fr = label._Frame(
+        qm=np.array(f["qm"]),
+        free=np.array(f["free"]),
+        assign=np.array(f["assign"]),
+        pred=np.array(f["pred"]),
+        sig=np.array(f["sig"]),
+        near=f["near"],
+        tracked=np.array(f["tracked"]),
+        ambiguity=f["ambiguity"],
+        age=np.array(f["age"]),
+        publish_asis_psis=f["publish_asis_psis"],
+        outside=np.array(f["outside"]),
+        cam=np.array(f["cam"]),
+    )
+    geo = label.Geometry(
+        offsets=np.array(g["offsets"]),
+        dist=np.array(g["dist"]),
+        sho_h=g["sho_h"],
+        pelvis_d0={(a, b): v for a, b, v in g["pelvis_d0"]},
+        wand_off=g["wand_off"],
+    )
+    return fr, geo, np.array(doc["sho"]), doc["H"], doc["gate"]
+
+
+def test_the_thigh_wand_does_not_take_a_blob_far_above_its_standing_height(monkeypatch) -> None:
+    # The first frame of a walk back (the `mirror` set-up): the near leg walks in with the
+    # thigh and knee low (late stance) and nothing tracked yet. Against the standing pose
+    # the leg shifted up by one marker fitted better: the thigh label took the near ASI's
+    # blob (735 mm high, the wand stands at 550), the knee the thigh's and the tibia the
+    # knee's, and the tracks held the shift for 17 frames.
+    asi, thi = 8, 3  # blobs, from the simulator's truth
+    fr, geo, sho, H, gate = _recorded_frame("label_mirror_first_frame.json")
+    label._lower(fr, geo, sho, H, gate)
+    assert fr.assign[MARKER_INDEX["R_THI"]] != asi
+    assert fr.assign[MARKER_INDEX["R_THI"]] in (-1, thi)
+    # Without the rule (a rise allowed up to twice the thigh), the shift comes back.
+    monkeypatch.setattr(label, "THI_RISE", 2.0)
+    fr, geo, sho, H, gate = _recorded_frame("label_mirror_first_frame.json")
+    label._lower(fr, geo, sho, H, gate)
+    assert fr.assign[MARKER_INDEX["R_THI"]] == asi
+    assert fr.assign[MARKER_INDEX["R_KNE"]] == thi
