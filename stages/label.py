@@ -262,7 +262,10 @@ PELVIS = (("near", "PSI"), ("near", "HIP"), ("near", "ASI"), ("far", "ASI"), ("f
 MISS_COST = 9.0  # a missing label costs as much as a 3-sigma fit
 # A blob whose radius exceeds this many times the frame's median is no marker (_huge).
 HUGE_BLOB = 3.0
-HIP_DROP = 0.25  # share of the standing ASI/PSI-to-HIP drop the hip keeps below them
+# Share of its standing drop below the ASI and PSI that the hip keeps while walking (0.25
+# until the twenty-sixth session; README labelling section, "The hip kept 0.4 of its
+# drop below the spines").
+HIP_DROP = 0.4
 # The middle of the walkway (fractions of its length L): a shoulder track restarting here
 # within restart_frames of the last one's end, with no move to measure, keeps its direction
 # (nobody turns round mid-walkway in a third of a second; near the ends they may have).

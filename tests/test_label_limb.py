@@ -145,7 +145,7 @@ def test_a_pass_first_sight_keeps_the_far_end_guess() -> None:
     assert _restart(move=35.0, lost=False) == -1
 
 
-def _recorded_frame(name: str) -> tuple[label._Frame, label.Geometry, np.ndarray, float, float]:
+def recorded_frame(name: str) -> tuple[label._Frame, label.Geometry, np.ndarray, float, float]:
     """A label stage working frame recorded from a simulated walk (``tests/data``)."""
     import json
     from pathlib import Path
@@ -165,6 +165,7 @@ def _recorded_frame(name: str) -> tuple[label._Frame, label.Geometry, np.ndarray
         publish_asis_psis=f["publish_asis_psis"],
         outside=np.array(f["outside"]),
         cam=np.array(f["cam"]),
+        still=None if f.get("still") is None else np.array(f["still"]),
     )
     geo = label.Geometry(
         offsets=np.array(g["offsets"]),
@@ -183,13 +184,13 @@ def test_the_thigh_wand_does_not_take_a_blob_far_above_its_standing_height(monke
     # blob (735 mm high, the wand stands at 550), the knee the thigh's and the tibia the
     # knee's, and the tracks held the shift for 17 frames.
     asi, thi = 8, 3  # blobs, from the simulator's truth
-    fr, geo, sho, H, gate = _recorded_frame("label_mirror_first_frame.json")
+    fr, geo, sho, H, gate = recorded_frame("label_mirror_first_frame.json")
     label._lower(fr, geo, sho, H, gate)
     assert fr.assign[MARKER_INDEX["R_THI"]] != asi
     assert fr.assign[MARKER_INDEX["R_THI"]] in (-1, thi)
     # Without the rule (a rise allowed up to twice the thigh), the shift comes back.
     monkeypatch.setattr(label, "THI_RISE", 2.0)
-    fr, geo, sho, H, gate = _recorded_frame("label_mirror_first_frame.json")
+    fr, geo, sho, H, gate = recorded_frame("label_mirror_first_frame.json")
     label._lower(fr, geo, sho, H, gate)
     assert fr.assign[MARKER_INDEX["R_THI"]] == asi
     assert fr.assign[MARKER_INDEX["R_KNE"]] == thi
