@@ -1283,8 +1283,9 @@ class CameraState:
     # The camera's markers were seen saturating (``saturating_markers``); kept from trial
     # to trial of the camera: the static pose, all markers in view, usually tells.
     markers_saturate: bool = False
-    # The previous frame's final blobs (blob_record), for split_tracked.
-    previous: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    # The previous frame's final blobs (blob_record), for split_tracked (an array: left
+    # out of the dataclass's equality).
+    previous: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)), compare=False)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from gaitflow.stages import label
 from gaitflow.stages.model import FloorFrame
 from test_label_accuracy import _leg_frame
@@ -177,7 +178,9 @@ def recorded_frame(name: str) -> tuple[label._Frame, label.Geometry, np.ndarray,
     return fr, geo, np.array(doc["sho"]), doc["H"], doc["gate"]
 
 
-def test_the_thigh_wand_does_not_take_a_blob_far_above_its_standing_height(monkeypatch) -> None:
+def test_the_thigh_wand_does_not_take_a_blob_far_above_its_standing_height(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # The first frame of a walk back (the `mirror` set-up): the near leg walks in with the
     # thigh and knee low (late stance) and nothing tracked yet. Against the standing pose
     # the leg shifted up by one marker fitted better: the thigh label took the near ASI's
