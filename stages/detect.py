@@ -971,12 +971,12 @@ def split_cores(
 TRACK_U, TRACK_V, TRACK_AREA, TRACK_GROUP, TRACK_RR = range(5)
 
 
-def blob_record(comps: Components, group_area: np.ndarray) -> np.ndarray:
+def blob_record(centroid: np.ndarray, comps: Components, group_area: np.ndarray) -> np.ndarray:
     """(K, 5) record of a frame's final blobs for the next frame's :func:`split_tracked`:
-    u, v px, area px, the area of the component the blob came from (its own area unless
-    it is a part of a split one) and r_r px."""
+    u, v px (``centroid`` (K, 2), the published ones), area px, the area of the component
+    the blob came from (its own area unless it is a part of a split one) and r_r px."""
     return np.column_stack(
-        [comps.centroid.reshape(-1, 2), comps.area, group_area, comps.region_radius]
+        [centroid.reshape(-1, 2), comps.area, group_area, comps.region_radius]
     ).astype(np.float64)
 
 
@@ -1400,14 +1400,17 @@ def detect_frame(
         # Split blobs take their parts' centroids; the others keep the (refined) ones.
         centroid = np.vstack([np.where(split[:, None], comps.centroid[:n0], centroid),
                               comps.centroid[n0:]])  # fmt: skip
-    group = np.concatenate([group, comps.area[group.size :]])
     entry = HistoryEntry(comps.threshold, k1, u1)
     status = "ok"
     if roi.image.size == 0 or comps.count == 0:
         status = "empty"
     if comps.count > p["max_blobs"]:
         status = "too-many"
-    record = blob_record(replace(comps, centroid=centroid), group)
+    record = np.zeros((0, 5))
+    if p["split_tracked"]:  # the next frame's split needs it; nothing else does
+        # Parts a later splitter made count as components of their own.
+        group = np.concatenate([group, comps.area[group.size :]])
+        record = blob_record(centroid, comps, group)
     return Detection(
         comps,
         centroid,
