@@ -61,7 +61,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    offset off the segment's line; the thigh wand above the knee marker, always, and never
    more than ``THI_RISE`` of the thigh above its standing height; near knee
    and thigh at the near leg's depth, far knee and thigh, deeper, absorb their blobs; the
-   pelvis's hip label is a slot too, and dropped when the leg below contradicts it; the
+   pelvis's hip label is a slot too, and dropped when the leg below contradicts it (an
+   untracked hip alone in the pelvis also pays for its height off the labelled shoulder's,
+   ``HIP_BELOW_SHO_SIG``); the
    blob on the knee's fresh track is kept from the foot search).
    Segment lengths more than 25 % off the stature-scaled template fall back to it (a
    static labelling error);
@@ -293,6 +295,11 @@ NEAR_HIP_DEEP = 160.0
 # Half-width (in _rigid sigmas) of the ring at the thigh's length from the hip whose blobs
 # the foot search leaves to the limb search when the knee has no fresh track (see _lower).
 KNEE_RING = 0.5
+# Sigma of the hip's height below the shoulder while walking, as a share of the shoulder's
+# standing height (2 % is about 25 mm): the pelvis and shoulder bob together, the hip's drop
+# below the shoulder marker varying by 1-12 mm (standard deviation per walk and side, five
+# walks, the simulator's truth) against 10-40 mm for its height above the floor.
+HIP_BELOW_SHO_SIG = 0.02
 # Highest rise of the thigh wand above its standing height, as a share of the thigh's
 # length: hip flexion of 60 degrees lifts a wand at mid-thigh by a quarter of it.
 THI_RISE = 0.5
@@ -1617,6 +1624,17 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     if hip_blob >= 0:
         # The pelvis search has judged the hip's own fit: here only the leg may overrule it.
         h3.U[4, K2 - 1] = 0.0
+        sho_i = MARKER_INDEX[f"{near}_SHO"]
+        near_spines = [fr.assign[MARKER_INDEX[f"{near}_{s}"]] >= 0 for s in ("ASI", "PSI")]
+        if not (_fresh(fr, hip_i) or any(near_spines)) and fr.assign[sho_i] >= 0:
+            # ... unless the hip stands alone, with no track of its own and no near spine
+            # labelled with it: then its height below the shoulder labelled in this frame
+            # counts too. The pelvis search judged it against its standing height above
+            # the floor, which a bobbing gait leaves by up to 90 mm: a hidden hip took the
+            # thigh wand's blob, the thigh label the knee's, and the knee was left out, for
+            # a dozen frames at a pass's start.
+            drop = q[hip_blob, 2] - (sho[2] - H + geo.rel_sho("near", "HIP")[2])
+            h3.U[4, K2 - 1] = (drop / (HIP_BELOW_SHO_SIG * H)) ** 2
     if _fresh(fr, kne_i) and fr.tracked[thi_i]:
         # Track claim: the thigh wand pays a miss for a blob that the knee's fresh track
         # predicts within 2 sigma of its viewing ray, and better than the thigh's does.

@@ -197,3 +197,29 @@ def test_the_thigh_wand_does_not_take_a_blob_far_above_its_standing_height(
     label._lower(fr, geo, sho, H, gate)
     assert fr.assign[MARKER_INDEX["R_THI"]] == asi
     assert fr.assign[MARKER_INDEX["R_KNE"]] == thi
+
+
+def test_an_untracked_hip_far_below_the_shoulders_bob_is_dropped_for_the_leg(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The first labelled frame of a walk back (``far+d30+noisy+strays_late+paretic``, the
+    # crouched walker): the near hip is hidden, nothing is tracked, and the shoulder stands
+    # 83 mm above its standing height (the gait's bob). The pelvis search gave the hip label
+    # to the thigh wand's blob, 31 mm below the hip's standing height above the floor but
+    # 114 mm below its standing drop from the shoulder; the limb search then kept it, put
+    # the thigh label on the knee's blob and left the knee out.
+    thi, kne = 2, 1  # blobs, from the simulator's truth
+    fr, geo, sho, H, gate = recorded_frame("label_bobbing_hidden_hip.json")
+    hip_i = MARKER_INDEX["L_HIP"]
+    assert fr.assign[hip_i] == thi  # the pelvis search's choice, before the limb
+    label._lower(fr, geo, sho, H, gate)
+    assert fr.assign[hip_i] == -1
+    assert fr.assign[MARKER_INDEX["L_THI"]] == thi
+    assert fr.assign[MARKER_INDEX["L_KNE"]] == kne
+    # Without the shoulder's height (any drop allowed), the shifted leg comes back.
+    monkeypatch.setattr(label, "HIP_BELOW_SHO_SIG", 1e6)
+    fr, geo, sho, H, gate = recorded_frame("label_bobbing_hidden_hip.json")
+    label._lower(fr, geo, sho, H, gate)
+    assert fr.assign[hip_i] == thi
+    assert fr.assign[MARKER_INDEX["L_THI"]] == kne
+    assert fr.assign[MARKER_INDEX["L_KNE"]] == -1
