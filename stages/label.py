@@ -1628,11 +1628,12 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         near_spines = [fr.assign[MARKER_INDEX[f"{near}_{s}"]] >= 0 for s in ("ASI", "PSI")]
         if not (_fresh(fr, hip_i) or any(near_spines)) and fr.assign[sho_i] >= 0:
             # ... unless the hip stands alone, with no track of its own and no near spine
-            # labelled with it: then its height below the shoulder labelled in this frame
-            # counts too. The pelvis search judged it against its standing height above
-            # the floor, which a bobbing gait leaves by up to 90 mm: a hidden hip took the
-            # thigh wand's blob, the thigh label the knee's, and the knee was left out, for
-            # a dozen frames at a pass's start.
+            # labelled with it: then its height below the shoulder track (updated by a
+            # shoulder labelled in this frame) counts too. The pelvis search judged it
+            # against its standing height above the floor, which a bobbing gait leaves (by
+            # 96 mm in the frame of the test): a hidden hip took the thigh wand's blob, the
+            # thigh label the knee's, and the knee was left out, for a dozen frames at a
+            # pass's start.
             drop = q[hip_blob, 2] - (sho[2] - H + geo.rel_sho("near", "HIP")[2])
             h3.U[4, K2 - 1] = (drop / (HIP_BELOW_SHO_SIG * H)) ** 2
     if _fresh(fr, kne_i) and fr.tracked[thi_i]:
