@@ -1281,6 +1281,13 @@ def beyond_image(pred: np.ndarray, direction: int, ff: FloorFrame, view: Camera)
     return ~inside
 
 
+def _bob(sho: np.ndarray, H: float) -> float:
+    """The shoulder track's height ``sho`` (f, e, h) above its standing height ``H``, mm:
+    the gait's bob, which carries the pelvis and the thighs with it (a standing height
+    plus this is where a trunk or thigh marker is expected now)."""
+    return float(sho[2] - H)
+
+
 def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -> None:
     """Steps 5-6: the pelvis as a rigid cluster (bottom-mode positions).
 
@@ -1340,7 +1347,7 @@ def _pelvis(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) -
     # spread 4-41 mm over twelve walks) against its 57-169 mm below the spines; without
     # this, a hip hidden behind the arm took the near ASI's half-hidden blob, the commonest
     # wrong label left.
-    top = sho[2] - H + spines - drop
+    top = spines + _bob(sho, H) - drop
     hy.forbid((1,), lambda ph: ph[:, 2] <= top)
     # Nor does it lie far deeper than its standing depth from the shoulder track (as the
     # near tibia wand, NEAR_HIP_DEEP): a hip track that had slipped onto the far thigh held
@@ -1634,7 +1641,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             # 96 mm in the frame of the test): a hidden hip took the thigh wand's blob, the
             # thigh label the knee's, and the knee was left out, for a dozen frames at a
             # pass's start.
-            drop = q[hip_blob, 2] - (sho[2] - H + geo.rel_sho("near", "HIP")[2])
+            drop = q[hip_blob, 2] - (geo.rel_sho("near", "HIP")[2] + _bob(sho, H))
             h3.U[4, K2 - 1] = (drop / (HIP_BELOW_SHO_SIG * H)) ** 2
     if _fresh(fr, kne_i) and fr.tracked[thi_i]:
         # Track claim: the thigh wand pays a miss for a blob that the knee's fresh track
@@ -1693,7 +1700,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
     # hip, THI_RISE of the thigh's length even in a high-stepping gait. Without this, at a
     # pass's first frames the thigh label took the hip's blob and the knee label the
     # thigh's, and the tracks held the leg shifted by one marker for half a second.
-    thi_top = sho[2] - H + geo.rel_sho("near", "THI")[2] + THI_RISE * thigh
+    thi_top = geo.rel_sho("near", "THI")[2] + _bob(sho, H) + THI_RISE * thigh
     h3.forbid((1,), lambda p: p[:, 2] < thi_top)
     # The thigh wand sits on the thigh, above the knee marker, whatever else is seen. It
     # may sit only 50-70 mm above the knee; when this counted only with all five slots
