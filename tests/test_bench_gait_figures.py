@@ -1,0 +1,51 @@
+"""``gaitflow bench gait``'s length and phase figures: Table IV's mean ± SD of the signed %
+errors, and the mean absolute error beside them."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from gaitflow.bench.gait import TABLE_IV, table_iv_figures
+from gaitflow.cli import main
+
+
+def test_table_iv_figures_are_the_signed_mean_and_sd_with_the_absolute_mean_apart() -> None:
+    fig = table_iv_figures([2.0, -2.0, 1.0, float("nan")])
+    assert fig["n"] == 3
+    assert fig["mean"] == pytest.approx(1.0 / 3.0)
+    assert fig["sd"] == pytest.approx(math.sqrt((25 + 49 + 4) / 9 / 2))
+    assert fig["abs"] == pytest.approx(5.0 / 3.0)
+
+
+def test_table_iv_figures_of_one_error_have_no_sd_and_of_none_no_mean() -> None:
+    one = table_iv_figures([-1.5])
+    assert (one["mean"], one["abs"], one["n"]) == (-1.5, 1.5, 1)
+    assert math.isnan(one["sd"])
+    none = table_iv_figures([])
+    assert none["n"] == 0 and math.isnan(none["mean"]) and math.isnan(none["abs"])
+
+
+def test_bench_gait_summarises_the_trials_signed_errors_beside_table_iv(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    argv = ["bench", "gait", "--level", "markers", "--trials", "btk_PiG_Motion3_FF"]
+    assert main([*argv, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    (trial,) = doc["trials"].values()
+    s = doc["summary"]
+    for key in TABLE_IV:
+        errs = np.asarray(trial[key], dtype=float)
+        assert errs.size == s[f"{key}_matched"] > 1
+        assert s[f"{key}_mean_pct"] == pytest.approx(errs.mean())
+        assert s[f"{key}_sd_pct"] == pytest.approx(errs.std(ddof=1))
+        assert s[f"{key}_err_pct"] == pytest.approx(np.abs(errs).mean())
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    for key, (mean, sd) in TABLE_IV.items():
+        row = next(r for r in text.splitlines() if r.startswith(f"{key} error %, mean ± SD"))
+        assert f"{s[f'{key}_mean_pct']:+.2f} ± {s[f'{key}_sd_pct']:.2f}" in row
+        assert f"{mean:.2f} ± {sd:.2f}" in row
