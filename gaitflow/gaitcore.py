@@ -1107,6 +1107,32 @@ def _speed(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.abs(np.gradient(x, t))
 
 
+def swing_speed(seen: float, walk_speed: float, swing_floor: float) -> float:
+    """A foot's swing speed (mm/s) for its event thresholds: the 90th percentile of the
+    speeds seen (``seen``), raised to ``swing_floor`` times the walking speed where that is
+    known (:func:`foot_contacts`); NaN when neither is."""
+    floor = swing_floor * walk_speed if np.isfinite(walk_speed) and swing_floor > 0 else np.nan
+    if not np.isfinite(floor):
+        return float(seen)
+    return float(floor) if not np.isfinite(seen) else float(max(seen, floor))
+
+
+def walking_speed(t: np.ndarray, prog: np.ndarray) -> float:
+    """The mean walking speed of a pass (mm/s): the magnitude of the least-squares slope of
+    the body's progression ``prog`` (N,) over time ``t`` (N,) s, NaN = not seen. NaN when
+    fewer than three samples are seen or they span no time."""
+    t = np.asarray(t, dtype=float)
+    prog = np.asarray(prog, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(prog)
+    if ok.sum() < 3:
+        return float("nan")
+    dt = t[ok] - t[ok].mean()
+    den = float((dt * dt).sum())
+    if not den > 0:
+        return float("nan")
+    return abs(float((dt * (prog[ok] - prog[ok].mean())).sum()) / den)
+
+
 def foot_contacts(
     t: np.ndarray,
     heel_h: np.ndarray,
@@ -1126,6 +1152,8 @@ def foot_contacts(
     min_contact_s: float = 0.15,
     rise_frac: float = 0.05,
     arrive_speed_frac: float = 0.5,
+    walk_speed: float = float("nan"),
+    swing_floor: float = 1.8,
 ) -> list[Contact]:
     """Stances of one foot from Alg. 6 on its heel and toe heights.
 
@@ -1170,6 +1198,16 @@ def foot_contacts(
         where the heel comes into view (open left end: Alg. 6 saw no descent to lock on) has
         a heel strike when the heel is seen moving faster than this fraction of its swing
         speed, then coming to rest: the strike itself was observed.
+    walk_speed, swing_floor : the pass's walking speed (mm/s, NaN = unknown) and the least
+        multiple of it that the swing speed may be. A foot moves forward only in its swing,
+        which lasts at most about half the cycle even in hemiparetic gait, so its swing
+        speed is at least about twice the walking speed: on the simulator's true markers
+        the 90th percentile is 2.6-3.5 times it, 2.0-2.5 on the hemiparetic leg. Where
+        the labels leave most of a swing unseen (the far foot), the percentile of the
+        samples seen falls to about the walking speed, and the rest and toe speed-up
+        thresholds with it: heel strikes came 30-60 ms late and toe offs early. The
+        thresholds use the reference raised to ``swing_floor`` times ``walk_speed``; the
+        tests that the heel was seen moving keep the reference of the samples seen.
 
     Returns
     -------
@@ -1188,7 +1226,8 @@ def foot_contacts(
     )
     vh = _speed(t, np.asarray(heel_prog, dtype=float))
     vt = _speed(t, np.asarray(toe_prog, dtype=float))
-    ref = percentile_linear(vh[~np.isnan(vh)], (90,))[0] if np.isfinite(vh).any() else float("nan")
+    seen = percentile_linear(vh[~np.isnan(vh)], (90,))[0] if np.isfinite(vh).any() else np.nan
+    ref = swing_speed(seen, walk_speed, swing_floor)
     use_vel = refine == "velocity" and np.isfinite(ref) and ref > 0
     out: list[Contact] = []
     hranges = list(hr.ranges)
@@ -1213,7 +1252,7 @@ def foot_contacts(
             # heel strike, not a guess. Alg. 6 locks while the heel is still moving (it
             # lands about 0.1 s later): a lock with the heel already at rest is no landing.
             # Without a lock (open end) the heel must be seen in its swing.
-            moving = (hs_speed_frac if r.left_locked else arrive_speed_frac) * ref
+            moving = (hs_speed_frac if r.left_locked else arrive_speed_frac) * seen
             until = r.left + 1 if r.left_locked else r.right
             with np.errstate(invalid="ignore"):
                 fast = np.flatnonzero(vh[first:until] > moving)

@@ -169,6 +169,15 @@ PARAMS = ParamSet(
         Param("hs_speed_frac", float, 0.1, "ratio", "heel strike: heel speed / swing speed", 0.0),
         Param("to_speed_frac", float, 0.3, "ratio", "toe off: toe speed / swing speed", 0.0),
         Param(
+            "swing_floor",
+            float,
+            1.8,
+            "ratio",
+            "the swing speed of the event thresholds is at least this times the pass's"
+            " walking speed, where the labels leave most of a swing unseen (0 = off)",
+            0.0,
+        ),
+        Param(
             "to_late_s",
             float,
             0.1,
@@ -242,6 +251,7 @@ CONTACT_PARAMS = (
     "hs_speed_frac",
     "to_speed_frac",
     "to_late_s",
+    "swing_floor",
 )
 BODY = [f"{s}_{m}" for s in "LR" for m in ("SHO", "ASI", "PSI", "HIP", "THI")]
 # the line of progression: markers that move with the body, not with a leg or an arm
@@ -581,6 +591,7 @@ def analyse(
             if p["progression"] == "pass":
                 u = gc.line_of_progression(tq[sl], pq[sl][:, TRUNK], plane, u)
             contacts: dict[str, list[gc.Contact]] = {}
+            walk_speed = gc.walking_speed(tq[sl], body[sl])
             prog_heel: dict[str, np.ndarray] = {}
             tilt: dict[str, np.ndarray] = {}
             for s in "LR":
@@ -595,7 +606,7 @@ def analyse(
                     gc.progression(toe, origin, u),
                     s,
                 )
-                kw = {k: p[k] for k in CONTACT_PARAMS}
+                kw = {k: p[k] for k in CONTACT_PARAMS} | {"walk_speed": walk_speed}
                 key = Memo.key("foot_contacts", *args, sorted(kw.items()))
                 found_c = cache.get(key)
                 if found_c is None:
