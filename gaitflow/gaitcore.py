@@ -1205,7 +1205,7 @@ def foot_contacts(
         the 90th percentile is 2.6-3.5 times it, 2.0-2.5 on the hemiparetic leg. Where
         the labels leave most of a swing unseen (the far foot), the percentile of the
         samples seen falls to about the walking speed, and the rest and toe speed-up
-        thresholds with it: heel strikes came 30-60 ms late and toe offs early. The
+        thresholds with it: heel strikes came 34-62 ms late and toe offs early. The
         thresholds use the reference raised to ``swing_floor`` times ``walk_speed``; the
         tests that the heel was seen moving keep the reference of the samples seen.
 
