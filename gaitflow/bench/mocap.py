@@ -57,6 +57,14 @@ PAPER = {
     "recall_proposed": {0.5: 95.86, 1.5: 97.32, 2.5: 98.04, "ms": 7.72},
     "recall_previous": {0.5: 88.12, 1.5: 90.84, 2.5: 92.10, "ms": 117.53},
 }
+# Tables II and III give each figure as mean ± SD over the experiments; the SDs.
+PAPER_SD = {
+    "static": {"detected": 3.52},
+    "adaptive": {"detected": 1.08},
+    "recall_proposed": {0.5: 1.64, 1.5: 1.75, 2.5: 1.73},
+    "recall_previous": {0.5: 2.61, 1.5: 2.67, 2.5: 2.45},
+}
+SPREAD_KEYS = ("detected", *(f"recall@{b}" for b in BETAS))
 GOALS = {"detected": 99.5, "recall@0.5": 97.0, "err_median_mm": 5.0, "ms_detect_locate_p99": 2.0}
 MODE_OF = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
 HEELS = {MARKER_NAMES.index("L_HEE"), MARKER_NAMES.index("R_HEE")}
@@ -136,6 +144,45 @@ def score_frame(
             score.errors_by_mode.setdefault(CLUSTER_MODES[mode], []).append(err)
             site = MARKER_NAMES[k].split("_", 1)[1]
             score.errors_by_site.setdefault(site, []).append(err)
+
+
+def merge_scores(scores: Sequence[Score]) -> Score:
+    """One Score holding all of ``scores`` (the trials of one method and variant): counts
+    summed, per-view and per-frame lists joined in order."""
+    out = Score()
+    for s in scores:
+        out.visible += s.visible
+        out.detected += s.detected
+        out.false_blobs += s.false_blobs
+        out.missed_merged += s.missed_merged
+        out.frames += s.frames
+        for b in BETAS:
+            out.recalled[b] += s.recalled[b]
+            out.recalled_mid[b] += s.recalled_mid[b]
+        out.errors += s.errors
+        out.z_bias += s.z_bias
+        for mine, theirs in (
+            (out.errors_by_mode, s.errors_by_mode),
+            (out.errors_by_site, s.errors_by_site),
+            (out.ms, s.ms),
+        ):
+            for k, v in theirs.items():
+                mine.setdefault(k, []).extend(v)
+    return out
+
+
+def trial_spread(scores: Sequence[Score]) -> dict[str, float]:
+    """Detected % and recall % as Tables II and III give them: mean and sample SD over the
+    experiments (here the trials with a visible marker), each trial's own percentage; the
+    pooled figures of :func:`summarise` weight each trial by its marker views instead.
+    NaN SD with fewer than two trials."""
+    per = [summarise(s) for s in scores if s.visible]
+    out: dict[str, float] = {}
+    for k in SPREAD_KEYS:
+        v = np.array([r[k] for r in per], dtype=float)
+        out[f"{k}_trial_mean"] = float(v.mean()) if v.size else float("nan")
+        out[f"{k}_trial_sd"] = float(v.std(ddof=1)) if v.size > 1 else float("nan")
+    return out
 
 
 def _pct(x: Sequence[float], q: float) -> float:
@@ -311,13 +358,16 @@ def bench(
     methods += [f"adaptive-{a}" for a in ABLATIONS] if refine_ablation else []
     results: dict[str, Any] = {}
     for var in variants:
-        scores = {m: Score() for m in methods}
+        per_trial: dict[str, list[Score]] = {m: [] for m in methods}
         for trial in trials:
             rendered = render_frames(trial, seed, var, frames, recording)
             for m in methods:
                 base, _, extra = m.partition("-")
-                run_stages(rendered, base, scores[m], gate, extra, overrides=overrides)
-        results[var] = {m: summarise(s) for m, s in scores.items()}
+                per_trial[m].append(Score())
+                run_stages(rendered, base, per_trial[m][-1], gate, extra, overrides=overrides)
+        results[var] = {
+            m: summarise(merge_scores(ss)) | trial_spread(ss) for m, ss in per_trial.items()
+        }
     return results
 
 
@@ -450,6 +500,33 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
             "wall p99",
         ]
         tables.append(format_table(f"details, variant {var}", cols2, rows2))
+
+        def pm(mean: float | None, sd: float | None) -> str:
+            if mean is None or not np.isfinite(mean):
+                return "-"
+            return f"{mean:.2f}" + (f" ± {sd:.2f}" if sd is not None and np.isfinite(sd) else "")
+
+        rows_sd = [
+            [f"ours {m}"] + [pm(r[f"{k}_trial_mean"], r[f"{k}_trial_sd"]) for k in SPREAD_KEYS]
+            for m, r in res.items()
+            if m in ("adaptive", "static")
+        ]
+        for label, det, rec in (
+            ("paper Alg.1 (II, III)", "adaptive", "recall_proposed"),
+            ("paper static [25] (II)", "static", None),
+            ("paper previous [25] (III)", None, "recall_previous"),
+        ):
+            row = [label, pm(PAPER[det]["detected"], PAPER_SD[det]["detected"]) if det else "-"]
+            row += [pm(PAPER[rec][b], PAPER_SD[rec][b]) if rec else "-" for b in BETAS]
+            rows_sd.append(row)
+        cols_sd = ["method", "detected %", *(f"recall@{b} %" for b in BETAS)]
+        tables.append(
+            format_table(
+                f"as Tables II and III give them: mean ± SD over trials, variant {var}",
+                cols_sd,
+                rows_sd,
+            )
+        )
         sites = list(dict.fromkeys(n.split("_", 1)[1] for n in MARKER_NAMES))
         rows3 = [
             [f"ours {m}"] + [r["err_median_mm_by_site"].get(s) for s in sites]
@@ -491,6 +568,7 @@ def _run(args: argparse.Namespace) -> int:
         "params": overrides,
         "results": results,
         "paper": {k: {str(a): b for a, b in v.items()} for k, v in PAPER.items()},
+        "paper_sd": {k: {str(a): b for a, b in v.items()} for k, v in PAPER_SD.items()},
         "goals": GOALS,
         "wall_s": time.perf_counter() - t0,
         "numpy_op_us": op_us,
