@@ -8,9 +8,29 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 
 def add_json_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+
+
+def mean_sd(values: Sequence[float | None]) -> tuple[float, float]:
+    """Mean and sample standard deviation of the finite ``values`` (None and NaN left
+    out): the pair the paper's tables give per figure. NaN mean without values, NaN SD
+    with fewer than two."""
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
+    mean = float(v.mean()) if v.size else float("nan")
+    return mean, float(v.std(ddof=1)) if v.size > 1 else float("nan")
+
+
+def plus_minus(mean: float | None, sd: float | None, signed: bool = False) -> str:
+    """``mean ± sd`` as a table cell, 2 decimals (``signed``: the mean with its sign);
+    "-" without a mean, the mean alone without an SD."""
+    if mean is None or not np.isfinite(mean):
+        return "-"
+    out = f"{mean:+.2f}" if signed else f"{mean:.2f}"
+    return out + (f" ± {sd:.2f}" if sd is not None and np.isfinite(sd) else "")
 
 
 def _cell(v: Any) -> str:

@@ -825,9 +825,7 @@ def line_of_progression(
         ok = np.isfinite(pts[:, k]).all(axis=1)
         if ok.sum() < 3 or t[ok][-1] - t[ok][0] < min_span_s:
             continue
-        tk = t[ok] - t[ok].mean()
-        x = pts[ok, k] - pts[ok, k].mean(axis=0)
-        v += ok.sum() * (tk @ x) / (tk @ tk)
+        v += ok.sum() * ls_slope(t[ok], pts[ok, k])
     v = v - (v @ n) * n
     norm = float(np.linalg.norm(v))
     if not norm > 0 or not v @ ref > 0:
@@ -1111,10 +1109,8 @@ def swing_speed(seen: float, walk_speed: float, swing_floor: float) -> float:
     """A foot's swing speed (mm/s) for its event thresholds: the 90th percentile of the
     speeds seen (``seen``), raised to ``swing_floor`` times the walking speed where that is
     known (:func:`foot_contacts`); NaN when neither is."""
-    floor = swing_floor * walk_speed if np.isfinite(walk_speed) and swing_floor > 0 else np.nan
-    if not np.isfinite(floor):
-        return float(seen)
-    return float(floor) if not np.isfinite(seen) else float(max(seen, floor))
+    floor = swing_floor * walk_speed if swing_floor > 0 else np.nan
+    return float(np.fmax(seen, floor))  # fmax: a NaN side gives the other
 
 
 def walking_speed(t: np.ndarray, prog: np.ndarray) -> float:
@@ -1124,13 +1120,17 @@ def walking_speed(t: np.ndarray, prog: np.ndarray) -> float:
     t = np.asarray(t, dtype=float)
     prog = np.asarray(prog, dtype=float)
     ok = np.isfinite(t) & np.isfinite(prog)
-    if ok.sum() < 3:
-        return float("nan")
-    dt = t[ok] - t[ok].mean()
-    den = float((dt * dt).sum())
+    return abs(float(ls_slope(t[ok], prog[ok]))) if ok.sum() >= 3 else float("nan")
+
+
+def ls_slope(t: np.ndarray, x: np.ndarray) -> np.ndarray | float:
+    """Least-squares slope of ``x`` (N,) or (N, D) against time ``t`` (N,) s, all seen: a
+    float, or (D,). NaN where ``t`` has no spread."""
+    tk = t - t.mean()
+    den = float(tk @ tk)
     if not den > 0:
-        return float("nan")
-    return abs(float((dt * (prog[ok] - prog[ok].mean())).sum()) / den)
+        return np.full(np.shape(x)[1:], np.nan) if np.ndim(x) > 1 else float("nan")
+    return (tk @ (x - x.mean(axis=0))) / den
 
 
 def foot_contacts(

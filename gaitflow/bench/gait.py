@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from gaitflow.benchutil import add_json_flag, emit, format_table
+from gaitflow.benchutil import add_json_flag, emit, format_table, mean_sd, plus_minus
 from gaitflow.markers import MARKER_INDEX
 from gaitflow.params import parse_overrides
 from gaitflow.sim.variants import variant_changes, variants_help
@@ -158,14 +158,9 @@ def table_iv_figures(errors_pct: Sequence[float]) -> dict[str, float]:
     ``abs``: the mean absolute error, stricter (a bias on one side cannot cancel one on the
     other). ``n``: the number of errors.
     """
-    e = np.asarray([v for v in errors_pct if v is not None and np.isfinite(v)], dtype=float)
-    nan = float("nan")
-    return {
-        "mean": float(e.mean()) if e.size else nan,
-        "sd": float(e.std(ddof=1)) if e.size > 1 else nan,
-        "abs": float(np.abs(e).mean()) if e.size else nan,
-        "n": int(e.size),
-    }
+    e = [v for v in errors_pct if v is not None and np.isfinite(v)]
+    mean, sd = mean_sd(e)
+    return {"mean": mean, "sd": sd, "abs": mean_sd(np.abs(e))[0], "n": len(e)}
 
 
 def matched_errors(
@@ -496,10 +491,7 @@ def run(args: argparse.Namespace) -> int:
                 sc["knee_rmse_pig_R"],
                 float(np.mean(hs)) if hs.size else float("nan"),
                 float(np.mean(to)) if to.size else float("nan"),
-                _nanmean(np.abs(sc["step"]).tolist()),
-                _nanmean(np.abs(sc["stride"]).tolist()),
-                _nanmean(np.abs(sc["stance"]).tolist()),
-                _nanmean(np.abs(sc["swing"]).tolist()),
+                *(table_iv_figures(sc[key])["abs"] for key in TABLE_IV),
             ]
         )
     knee_all = [v for s in per.values() for v in (s["knee_rmse_L"], s["knee_rmse_R"])]
@@ -586,8 +578,8 @@ def run(args: argparse.Namespace) -> int:
         srows.append(
             [
                 f"{key} error %, mean ± SD (Table IV)",
-                f"{summary[f'{key}_mean_pct']:+.2f} ± {summary[f'{key}_sd_pct']:.2f}",
-                f"{paper_mean:.2f} ± {paper_sd:.2f}",
+                plus_minus(summary[f"{key}_mean_pct"], summary[f"{key}_sd_pct"], signed=True),
+                plus_minus(paper_mean, paper_sd),
                 goal,
             ]
         )

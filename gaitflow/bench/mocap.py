@@ -42,7 +42,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from gaitflow.benchutil import add_json_flag, emit, format_table
+from gaitflow.benchutil import add_json_flag, emit, format_table, mean_sd, plus_minus
 from gaitflow.errors import ConfigError
 from gaitflow.markers import CLUSTER_MODES, MARKER_NAMES, cluster_mode
 from gaitflow.params import parse_overrides
@@ -179,9 +179,7 @@ def trial_spread(scores: Sequence[Score]) -> dict[str, float]:
     per = [summarise(s) for s in scores if s.visible]
     out: dict[str, float] = {}
     for k in SPREAD_KEYS:
-        v = np.array([r[k] for r in per], dtype=float)
-        out[f"{k}_trial_mean"] = float(v.mean()) if v.size else float("nan")
-        out[f"{k}_trial_sd"] = float(v.std(ddof=1)) if v.size > 1 else float("nan")
+        out[f"{k}_trial_mean"], out[f"{k}_trial_sd"] = mean_sd([r[k] for r in per])
     return out
 
 
@@ -501,13 +499,9 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
         ]
         tables.append(format_table(f"details, variant {var}", cols2, rows2))
 
-        def pm(mean: float | None, sd: float | None) -> str:
-            if mean is None or not np.isfinite(mean):
-                return "-"
-            return f"{mean:.2f}" + (f" ± {sd:.2f}" if sd is not None and np.isfinite(sd) else "")
-
         rows_sd = [
-            [f"ours {m}"] + [pm(r[f"{k}_trial_mean"], r[f"{k}_trial_sd"]) for k in SPREAD_KEYS]
+            [f"ours {m}"]
+            + [plus_minus(r[f"{k}_trial_mean"], r[f"{k}_trial_sd"]) for k in SPREAD_KEYS]
             for m, r in res.items()
             if m in ("adaptive", "static")
         ]
@@ -516,8 +510,11 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
             ("paper static [25] (II)", "static", None),
             ("paper previous [25] (III)", None, "recall_previous"),
         ):
-            row = [label, pm(PAPER[det]["detected"], PAPER_SD[det]["detected"]) if det else "-"]
-            row += [pm(PAPER[rec][b], PAPER_SD[rec][b]) if rec else "-" for b in BETAS]
+            row = [
+                label,
+                plus_minus(PAPER[det]["detected"], PAPER_SD[det]["detected"]) if det else "-",
+            ]
+            row += [plus_minus(PAPER[rec][b], PAPER_SD[rec][b]) if rec else "-" for b in BETAS]
             rows_sd.append(row)
         cols_sd = ["method", "detected %", *(f"recall@{b} %" for b in BETAS)]
         tables.append(
