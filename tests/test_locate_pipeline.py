@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gaitflow.schemas import CalibrationRecord, GroundTruth, Markers3D, RawFrame
+from gaitflow.schemas import CalibrationRecord, Markers3D, RawFrame
 from gaitflow.stages.graph import load
 from gaitflow.stages.inline import run_inline
 
@@ -60,46 +60,6 @@ def test_graph_runs_clean_detect_locate() -> None:
         assert np.min(np.hypot(m.centroid[:, 0] - u, m.centroid[:, 1] - v)) < 0.3
     # Plane at 2600 mm; the published point is the marker centre, 12.5 + 2 (base) mm nearer.
     assert np.all(np.abs(m.depth[:, 0] - (2600.0 - 14.5)) < 3.0)
-
-
-def test_bench_scoring_on_literal_messages() -> None:
-    truth_px = np.full((20, 2), np.nan)
-    truth_px[:3] = [[10.0, 10.0], [50.0, 50.0], [52.0, 50.0]]  # the last two merge
-    visible = np.zeros(20, bool)
-    visible[:3] = True
-    pos = np.full((20, 3), np.nan)
-    pos[:3] = [[0, 0, 2500.0], [100, 0, 2500.0], [105, 0, 2500.0]]
-    h = GroundTruth.make_header("cam0", "walk-01", 0, 0)
-    gt = GroundTruth(
-        header=h,
-        position=pos,
-        pixel=truth_px,
-        visible=visible,
-        occluded=np.zeros(20, bool),
-        knee_flexion=np.zeros(2),
-    )
-    cen = np.array([[10.3, 10.0], [51.0, 50.0], [200.0, 200.0]])
-    p3 = np.zeros((3, 3, 3))
-    p3[0, :] = [0, 0, 2504.0]
-    p3[1, :] = [100, 0, 2510.0]
-    mk = Markers3D.follow(
-        h,
-        centroid=cen,
-        marker_radius=np.ones(3),
-        region_radius=np.ones(3),
-        depth=p3[:, :, 2],
-        position=p3,
-    )
-    s = mocap.Score()
-    mocap.score_frame(s, mk, gt, gate=4.0)
-    r = mocap.summarise(s)
-    assert r["visible"] == 3
-    assert r["detected"] == pytest.approx(200 / 3)
-    assert r["recall@0.5"] == pytest.approx(100 / 3)
-    assert r["recall@1.5"] == pytest.approx(200 / 3)
-    assert r["missed_merged"] == pytest.approx(100 / 3)
-    assert r["false_blobs_per_frame"] == 1
-    assert sorted(s.errors) == pytest.approx([4.0, 10.0])
 
 
 @pytest.mark.slow

@@ -65,6 +65,14 @@ PAPER_SD = {
     "recall_previous": {0.5: 2.61, 1.5: 2.67, 2.5: 2.45},
 }
 SPREAD_KEYS = ("detected", *(f"recall@{b}" for b in BETAS))
+# The same figures over the paper's own marker set only (the "12" columns below).
+MODEL_KEYS = tuple(f"{k}_12" for k in SPREAD_KEYS)
+# Fig. 5's sagittal model, n = 12 (algorithms.md [A-M1]): every site of the side facing the
+# camera, and of the far side only the heel and the toe, which show below the near leg.
+# The far pelvis markers are its "partially invisible" two, the far leg's lateral markers
+# face away.
+MODEL_FAR_SITES = ("HEE", "TOE")
+NEAR_SIDE_SITES = ("HIP", "THI", "KNE", "TIB", "ANK")
 GOALS = {"detected": 99.5, "recall@0.5": 97.0, "err_median_mm": 5.0, "ms_detect_locate_p99": 2.0}
 MODE_OF = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
 HEELS = {MARKER_NAMES.index("L_HEE"), MARKER_NAMES.index("R_HEE")}
@@ -84,6 +92,10 @@ class Score:
     errors_by_site: dict[str, list[float]] = field(default_factory=dict)
     false_blobs: int = 0
     missed_merged: int = 0  # missed markers with another visible marker within the gate
+    # the same counts over the sagittal model's markers (sagittal_model_markers)
+    visible_12: int = 0
+    detected_12: int = 0
+    recalled_12: dict[float, int] = field(default_factory=lambda: dict.fromkeys(BETAS, 0))
     frames: int = 0
     ms: dict[str, list[float]] = field(default_factory=dict)
 
@@ -102,6 +114,29 @@ def match(pred: np.ndarray, truth: np.ndarray, gate: float) -> list[tuple[int, i
     return [(i, j, float(d[i, j])) for i, j in nearest_first_pairs(d, gate)]
 
 
+def sagittal_model_markers(position: np.ndarray) -> np.ndarray:
+    """The markers of the paper's sagittal model in one frame: (20,) bool from the true
+    marker centres (20, 3), camera mm (scoring only).
+
+    The near side is the side whose leg markers (``NEAR_SIDE_SITES``) lie nearer the camera
+    (smaller mean Z); its ten sites count, and the far side's ``MODEL_FAR_SITES``. None
+    when neither side's leg markers are known.
+    """
+    pos = np.asarray(position, dtype=float).reshape(len(MARKER_NAMES), 3)
+    z = {
+        side: [pos[MARKER_NAMES.index(f"{side}_{s}"), 2] for s in NEAR_SIDE_SITES] for side in "LR"
+    }
+    mean_z = {side: np.nan if np.isnan(v).all() else np.nanmean(v) for side, v in z.items()}
+    out = np.zeros(len(MARKER_NAMES), dtype=bool)
+    if np.isnan(list(mean_z.values())).any():
+        return out
+    near = "L" if mean_z["L"] < mean_z["R"] else "R"
+    for i, name in enumerate(MARKER_NAMES):
+        side, site = name.split("_", 1)
+        out[i] = side == near or site in MODEL_FAR_SITES
+    return out
+
+
 def score_frame(
     score: Score, markers: Any, truth: Any, gate: float, mid: np.ndarray | None = None
 ) -> None:
@@ -111,9 +146,12 @@ def score_frame(
     tidx = np.flatnonzero(vis)
     pred = np.asarray(markers.centroid).reshape(-1, 2)
     pairs = match(pred, np.asarray(truth.pixel)[tidx], gate)
+    in_model = sagittal_model_markers(truth.position)[tidx]
     score.frames += 1
     score.visible += tidx.size
     score.detected += len(pairs)
+    score.visible_12 += int(in_model.sum())
+    score.detected_12 += sum(bool(in_model[tj]) for _, tj, _ in pairs)
     score.false_blobs += pred.shape[0] - len(pairs)
     if len(pairs) < tidx.size:
         tp = np.asarray(truth.pixel)[tidx]
@@ -131,6 +169,7 @@ def score_frame(
         for b in BETAS:
             if dist <= b:
                 score.recalled[b] += 1
+                score.recalled_12[b] += bool(in_model[tj])
         k = int(tidx[tj])
         mode = int(MODE_OF[k])
         p = np.asarray(markers.position)[bi, mode]
@@ -156,9 +195,12 @@ def merge_scores(scores: Sequence[Score]) -> Score:
         out.false_blobs += s.false_blobs
         out.missed_merged += s.missed_merged
         out.frames += s.frames
+        out.visible_12 += s.visible_12
+        out.detected_12 += s.detected_12
         for b in BETAS:
             out.recalled[b] += s.recalled[b]
             out.recalled_mid[b] += s.recalled_mid[b]
+            out.recalled_12[b] += s.recalled_12[b]
         out.errors += s.errors
         out.z_bias += s.z_bias
         for mine, theirs in (
@@ -178,13 +220,18 @@ def trial_spread(scores: Sequence[Score]) -> dict[str, float]:
     NaN SD with fewer than two trials."""
     per = [summarise(s) for s in scores if s.visible]
     out: dict[str, float] = {}
-    for k in SPREAD_KEYS:
+    for k in SPREAD_KEYS + MODEL_KEYS:
         out[f"{k}_trial_mean"], out[f"{k}_trial_sd"] = mean_sd([r[k] for r in per])
     return out
 
 
 def _pct(x: Sequence[float], q: float) -> float:
     return float(np.percentile(x, q)) if len(x) else float("nan")
+
+
+def _share(count: int, total: int) -> float:
+    """count / total in %, NaN without a total (a trial whose model markers never show)."""
+    return 100.0 * count / total if total else float("nan")
 
 
 def summarise(s: Score) -> dict[str, Any]:
@@ -201,6 +248,9 @@ def summarise(s: Score) -> dict[str, Any]:
         "z_bias_mm": _pct(s.z_bias, 50),
         "located": 100.0 * len(s.errors) / max(s.detected, 1),
         "false_blobs_per_frame": s.false_blobs / max(s.frames, 1),
+        "visible_12": s.visible_12,
+        "detected_12": _share(s.detected_12, s.visible_12),
+        **{f"recall@{b}_12": _share(s.recalled_12[b], s.visible_12) for b in BETAS},
         "missed_merged": 100.0 * s.missed_merged / vis,
         "detected_resolvable": 100.0 * s.detected / max(vis - s.missed_merged, 1),
     }
@@ -524,6 +574,7 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
                 rows_sd,
             )
         )
+        tables.append(_model_table(var, res))
         sites = list(dict.fromkeys(n.split("_", 1)[1] for n in MARKER_NAMES))
         rows3 = [
             [f"ours {m}"] + [r["err_median_mm_by_site"].get(s) for s in sites]
@@ -532,6 +583,30 @@ def _tables(results: dict[str, Any], trials: Sequence[str]) -> list[str]:
         cols3 = ["3D median mm by site", *(f"{s} ({cluster_mode('L_' + s)})" for s in sites)]
         tables.append(format_table(f"3D error by marker site, variant {var}", cols3, rows3))
     return tables
+
+
+def _model_table(var: str, res: dict[str, Any]) -> str:
+    """Detected and recall over the paper's own marker set (:func:`sagittal_model_markers`),
+    pooled and as mean ± SD over trials, beside Tables II and III and the goals."""
+    rows: list[list[Any]] = []
+    for m, r in res.items():
+        rows.append([f"ours {m}", r["visible_12"], r["detected_12"]])
+        rows[-1] += [r[f"recall@{b}_12"] for b in BETAS]
+        rows[-1] += [plus_minus(r[f"{k}_trial_mean"], r[f"{k}_trial_sd"]) for k in MODEL_KEYS]
+    pa, rp = PAPER["adaptive"], PAPER["recall_proposed"]
+    sa, sp = PAPER_SD["adaptive"], PAPER_SD["recall_proposed"]
+    rows.append(["paper Alg.1 (II, III)", None, pa["detected"], *(rp[b] for b in BETAS)])
+    rows[-1] += [plus_minus(pa["detected"], sa["detected"])]
+    rows[-1] += [plus_minus(rp[b], sp[b]) for b in BETAS]
+    rows.append(["goal", None, GOALS["detected"], GOALS["recall@0.5"], None, None])
+    rows[-1] += ["-"] * len(MODEL_KEYS)
+    cols = ["method", "views", "detected %", *(f"recall@{b} %" for b in BETAS)]
+    cols += ["detected, trials", *(f"@{b}, trials" for b in BETAS)]
+    title = (
+        f"the paper's marker set (Fig. 5, n = 12: the near side's ten, the far heel and toe), "
+        f"variant {var}"
+    )
+    return format_table(title, cols, rows)
 
 
 def _run(args: argparse.Namespace) -> int:
