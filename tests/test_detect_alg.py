@@ -273,6 +273,52 @@ def test_separate_markers_are_not_split() -> None:
     np.testing.assert_array_equal(on.centroid, off.centroid)
 
 
+def streak_scene(length: float) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    """Four single markers and one marker blurred along u over ``length`` px (saturated:
+    one flat stadium, as two touching discs would be)."""
+    img = frame(noise=10.0, seed=3)
+    singles = [(20.3, 20.6), (60.7, 25.2), (120.1, 30.4), (40.5, 90.9)]
+    for u, v in singles:
+        disc(img, u, v, 2.5, 60000.0)
+    for k in range(24):
+        disc(img, 100.0 - length / 2 + length * k / 23, 80.2, 2.5, 30000.0)
+    return u16(img), singles
+
+
+def previous_record(points: list[tuple[float, float]]) -> np.ndarray:
+    return np.array([[u, v, 20.0, 20.0, 3.0] for u, v in points])
+
+
+@pytest.mark.parametrize("length", [5.0, 7.0, 9.0])
+def test_a_blurred_marker_is_not_split_when_its_motion_draws_the_streak(length: float) -> None:
+    img, singles = streak_scene(length)
+    p = detect.PARAMS.resolve({"n": 5, "split_merged": True})
+    alone = detect.detect_frame(img, 12000.0, 2.5, (), p)
+    assert alone.blobs.count == 6  # in one frame the streak looks like two merged markers
+    # the frame before: the marker 1.25 streak lengths back along u (an exposure of 0.8 of
+    # the frame interval), the others still
+    moved = previous_record([*singles, (100.0 - 1.25 * length, 80.2)])
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=moved)
+    assert det.blobs.count == 5
+    # moving across its streak, or not seen in the frame before: the streak is unexplained
+    across = previous_record([*singles, (100.0, 80.2 - 1.25 * length)])
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=across).blobs.count == 6
+    others = previous_record(singles)
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=others).blobs.count == 6
+
+
+def test_a_merged_pair_moving_slower_than_its_separation_is_still_split() -> None:
+    img, truth = scene(4.2)  # the pair's centres lie 4.2 px apart along u
+    p = detect.PARAMS.resolve({"n": 6, "split_merged": True})
+    slow = previous_record([*truth[:4], (102.1 - 3.0, 80.2)])
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=slow)
+    assert det.blobs.count == 6
+    assert nearest(det.centroid, truth).max() < 0.6
+    # faster along its own axis than its separation per frame: read as one blurred marker
+    fast = previous_record([*truth[:4], (102.1 - 6.0, 80.2)])
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=fast).blobs.count == 5
+
+
 def test_split_is_off_by_default() -> None:
     assert detect.PARAMS.resolve({})["split_merged"] is False
 
