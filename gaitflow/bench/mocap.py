@@ -120,7 +120,7 @@ def sagittal_model_markers(position: np.ndarray) -> np.ndarray:
 
     The near side is the side whose leg markers (``NEAR_SIDE_SITES``) lie nearer the camera
     (smaller mean Z); its ten sites count, and the far side's ``MODEL_FAR_SITES``. None
-    when neither side's leg markers are known.
+    when either side's leg markers are all unknown (no near side to tell).
     """
     pos = np.asarray(position, dtype=float).reshape(len(MARKER_NAMES), 3)
     z = {
