@@ -791,6 +791,35 @@ def _part_stats(X: np.ndarray, val: np.ndarray, wt: np.ndarray) -> tuple:
             int(X.shape[0]))  # fmt: skip
 
 
+# Columns of the per-blob record detect keeps from one frame to the next (split_tracked,
+# split_merged).
+TRACK_U, TRACK_V, TRACK_AREA, TRACK_GROUP, TRACK_RR = range(5)
+
+
+def match_previous(
+    previous: np.ndarray, centroid: np.ndarray, gate: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """This frame's blobs matched to the frame before's, one to one, nearest first within
+    ``gate`` px.
+
+    Parameters
+    ----------
+    previous : (P, 5) :func:`blob_record` of the frame before.
+    centroid : (K, 2) this frame's blob centroids (u, v) px.
+
+    Returns
+    -------
+    (owner, dist): for each blob the previous blob matched to it, -1 for none, (K,) int;
+    and the distances (P, K) px.
+    """
+    pu = previous[:, TRACK_U : TRACK_V + 1]
+    dist = np.hypot(*(pu[:, None, :] - centroid[None, :, :]).transpose(2, 0, 1))
+    owner = np.full(len(centroid), -1)
+    for j, b in nearest_first_pairs(dist, gate):
+        owner[b] = j
+    return owner, dist
+
+
 def split_merged(
     roi: Roi,
     comps: Components,
@@ -838,10 +867,9 @@ def split_merged(
     cen, rm, rr, k, area = _statistics(comps)
     motion = np.full((comps.count, 2), np.nan)  # displacement since the frame before, px
     if previous is not None and previous.shape[0]:
-        pu = previous[:, TRACK_U : TRACK_V + 1]
-        dist = np.hypot(*(pu[:, None, :] - cen[None, :, :]).transpose(2, 0, 1))
-        for j, b in nearest_first_pairs(dist, gate):
-            motion[b] = cen[b] - pu[j]
+        owner, _ = match_previous(previous, cen, gate)
+        seen = owner >= 0
+        motion[seen] = cen[seen] - previous[owner[seen], TRACK_U : TRACK_V + 1]
     extra: list[tuple] = []
     split: list[int] = []
     for i in cand.tolist():
@@ -993,10 +1021,6 @@ def split_cores(
     return _with_parts(comps, (cen, rm, rr, k, area), extra, [pos[b] for b in plan])
 
 
-# Columns of the per-blob record detect keeps from one frame to the next (split_tracked).
-TRACK_U, TRACK_V, TRACK_AREA, TRACK_GROUP, TRACK_RR = range(5)
-
-
 def blob_record(centroid: np.ndarray, comps: Components, group_area: np.ndarray) -> np.ndarray:
     """(K, 5) record of a frame's final blobs for the next frame's :func:`split_tracked`:
     u, v px (``centroid`` (K, 2), the published ones), area px, the area of the component
@@ -1054,10 +1078,7 @@ def split_tracked(
         return comps, group
     pu = previous[:, TRACK_U : TRACK_V + 1]
     pa, pg, pr = previous[:, TRACK_AREA], previous[:, TRACK_GROUP], previous[:, TRACK_RR]
-    d = np.hypot(*(pu[:, None, :] - comps.centroid[None, :, :]).transpose(2, 0, 1))
-    owner = np.full(comps.count, -1)  # previous blob matched to each blob
-    for j, b in nearest_first_pairs(d, gate):
-        owner[b] = j
+    owner, d = match_previous(previous, comps.centroid, gate)
     plan: dict[int, tuple[int, int]] = {}  # blob -> (previous blob matched, previous merged)
     for j in np.setdiff1d(np.arange(previous.shape[0]), owner).tolist():
         b = int(np.argmin(d[j]))

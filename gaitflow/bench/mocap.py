@@ -36,7 +36,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import cv2
@@ -73,6 +73,9 @@ MODEL_KEYS = tuple(f"{k}_12" for k in SPREAD_KEYS)
 # face away.
 MODEL_FAR_SITES = ("HEE", "TOE")
 NEAR_SIDE_SITES = ("HIP", "THI", "KNE", "TIB", "ANK")
+_SIDE = np.array([n.split("_", 1)[0] for n in MARKER_NAMES])
+_SITE = np.array([n.split("_", 1)[1] for n in MARKER_NAMES])
+_LEG = np.isin(_SITE, NEAR_SIDE_SITES)
 GOALS = {"detected": 99.5, "recall@0.5": 97.0, "err_median_mm": 5.0, "ms_detect_locate_p99": 2.0}
 MODE_OF = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
 HEELS = {MARKER_NAMES.index("L_HEE"), MARKER_NAMES.index("R_HEE")}
@@ -122,19 +125,13 @@ def sagittal_model_markers(position: np.ndarray) -> np.ndarray:
     (smaller mean Z); its ten sites count, and the far side's ``MODEL_FAR_SITES``. None
     when either side's leg markers are all unknown (no near side to tell).
     """
-    pos = np.asarray(position, dtype=float).reshape(len(MARKER_NAMES), 3)
-    z = {
-        side: [pos[MARKER_NAMES.index(f"{side}_{s}"), 2] for s in NEAR_SIDE_SITES] for side in "LR"
-    }
-    mean_z = {side: np.nan if np.isnan(v).all() else np.nanmean(v) for side, v in z.items()}
-    out = np.zeros(len(MARKER_NAMES), dtype=bool)
-    if np.isnan(list(mean_z.values())).any():
-        return out
-    near = "L" if mean_z["L"] < mean_z["R"] else "R"
-    for i, name in enumerate(MARKER_NAMES):
-        side, site = name.split("_", 1)
-        out[i] = side == near or site in MODEL_FAR_SITES
-    return out
+    z = np.asarray(position, dtype=float).reshape(len(MARKER_NAMES), 3)[:, 2]
+    leg_z = {side: z[_LEG & (side == _SIDE)] for side in "LR"}
+    leg_z = {side: v[np.isfinite(v)] for side, v in leg_z.items()}
+    if not all(v.size for v in leg_z.values()):
+        return np.zeros(len(MARKER_NAMES), dtype=bool)
+    near = "L" if leg_z["L"].mean() < leg_z["R"].mean() else "R"
+    return (near == _SIDE) | np.isin(_SITE, MODEL_FAR_SITES)
 
 
 def score_frame(
@@ -186,30 +183,21 @@ def score_frame(
 
 
 def merge_scores(scores: Sequence[Score]) -> Score:
-    """One Score holding all of ``scores`` (the trials of one method and variant): counts
-    summed, per-view and per-frame lists joined in order."""
+    """One Score holding all of ``scores`` (the trials of one method and variant), field
+    by field: counts summed, lists joined in order, dicts of either merged key by key."""
+
+    def join(a: Any, b: Any) -> Any:
+        if not isinstance(a, dict):
+            return a + b  # counts add, lists concatenate (new lists: the inputs stay as they are)
+        merged = dict(a)
+        for k, v in b.items():
+            merged[k] = join(a[k], v) if k in a else v
+        return merged
+
     out = Score()
     for s in scores:
-        out.visible += s.visible
-        out.detected += s.detected
-        out.false_blobs += s.false_blobs
-        out.missed_merged += s.missed_merged
-        out.frames += s.frames
-        out.visible_12 += s.visible_12
-        out.detected_12 += s.detected_12
-        for b in BETAS:
-            out.recalled[b] += s.recalled[b]
-            out.recalled_mid[b] += s.recalled_mid[b]
-            out.recalled_12[b] += s.recalled_12[b]
-        out.errors += s.errors
-        out.z_bias += s.z_bias
-        for mine, theirs in (
-            (out.errors_by_mode, s.errors_by_mode),
-            (out.errors_by_site, s.errors_by_site),
-            (out.ms, s.ms),
-        ):
-            for k, v in theirs.items():
-                mine.setdefault(k, []).extend(v)
+        for f in fields(Score):
+            setattr(out, f.name, join(getattr(out, f.name), getattr(s, f.name)))
     return out
 
 
