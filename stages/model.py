@@ -138,6 +138,8 @@ FOOT_HEIGHT_WEIGHT = 0.5
 # Two foot markers within this height (mm) of each other are equally "the highest", the
 # ankle's mark in facing_from_feet.
 FOOT_HEIGHT_TIE = 15.0
+# The near foot's markers in a side view, rearmost first (the far foot shows heel and toe).
+NEAR_FOOT = ("HEE", "ANK", "TOE")
 # A foot marker less than this far (mm, along the walking axis) from the ankle lies on
 # neither side of it (facing_from_feet).
 FOOT_SIDE_MM = 20.0
@@ -386,7 +388,9 @@ def label_pose(
     template's knee height, THI the highest above it; blobs below it join the shank band.
     Shank/foot band: TIB is the highest near blob above the ankle band; of the low near
     blobs TOE is the foremost, ANK and HEE the rest by the template's forward and height
-    gaps; the far heel and toe are the rearmost and foremost low far blobs. Each foot's
+    gaps (a far twin of the near foot's middle blob that fits the ankle's place better is
+    the near ankle behind a shoe's reflector: the far foot shows no ankle marker); the far
+    heel and toe are the rearmost and foremost low far blobs. Each foot's
     blobs are the largest group within FOOT_SPAN_FRAC * H along the walking axis (the near
     foot's nearest the tibia marker, the far foot's nearest the near foot); low blobs
     outside it are reflectors on the floor.
@@ -515,7 +519,22 @@ def label_pose(
     shank_f = f[max(shank, key=lambda i: h[i])] if shank else None
     near_low = _one_foot([i for i in low_all if is_near[i]], f, FOOT_SPAN_FRAC * H, shank_f)
     scaled = layout * (H / H0)
-    near_low = _fit_foot(near_low, f, h, scaled, ("HEE", "ANK", "TOE"))
+    near_low = _fit_foot(near_low, f, h, scaled, NEAR_FOOT)
+    if len(near_low) == 3:
+        # The far foot shows only its heel and toe, so a far twin of the near foot's middle
+        # blob that fits the ankle's place better is no far marker but the near ankle, with
+        # a shoe's reflector just in front of it (on `shoes`: 15 mm behind the ankle, 18 mm
+        # below it, 39 mm nearer the camera). The blob in front is left a reflector.
+        mid = near_low[1]
+        for j in low_all:
+            if is_near[j] or e[j] <= e[mid] or max(abs(f[j] - f[mid]), abs(h[j] - h[mid])) >= tol:
+                continue
+            swapped = (near_low[0], int(j), near_low[2])
+            if _foot_misfit(swapped, f, h, scaled, NEAR_FOOT) < _foot_misfit(
+                tuple(near_low), f, h, scaled, NEAR_FOOT
+            ):
+                near_low = sorted(swapped, key=lambda i: f[i])
+                is_near[j] = True
     near_mid = 0.5 * (f[near_low[0]] + f[near_low[-1]]) if near_low else shank_f
     far_low = _one_foot([i for i in low_all if not is_near[i]], f, FOOT_SPAN_FRAC * H, near_mid)
     far_low = _fit_foot(far_low, f, h, scaled, ("HEE", "TOE"))
@@ -585,21 +604,28 @@ def _fit_foot(
     """
     if len(idx) <= len(sites):
         return idx
+    return list(
+        min(
+            itertools.combinations(idx, len(sites)),
+            key=lambda t: _foot_misfit(t, f, h, layout, sites),
+        )
+    )
+
+
+def _foot_misfit(
+    t: tuple[int, ...], f: np.ndarray, h: np.ndarray, layout: np.ndarray, sites: tuple[str, ...]
+) -> float:
+    """How far blobs ``t`` (one per site of ``sites``, rearmost first) lie from the
+    template's foot (``layout`` scaled to the subject), mm: :func:`_fit_foot`'s measure."""
     tpl = [float(layout[SITES.index(s), 0]) for s in sites]
     tpl_h = [float(layout[SITES.index(s), 1]) for s in sites]
     length = tpl[-1] - tpl[0]
-
-    def misfit(t: tuple[int, ...]) -> float:
-        scale = 1.0
-        if len(t) > 2 and length > 0:
-            scale = float(np.clip((f[t[-1]] - f[t[0]]) / length, *FOOT_LENGTH_RANGE))
-        along = sum(abs(f[t[-1]] - f[t[k]] - scale * (tpl[-1] - tpl[k])) for k in range(len(t) - 1))
-        up = sum(
-            abs(h[t[k]] - h[t[0]] - scale * (tpl_h[k] - tpl_h[0])) for k in range(1, len(t) - 1)
-        )
-        return along + FOOT_HEIGHT_WEIGHT * up
-
-    return list(min(itertools.combinations(idx, len(sites)), key=misfit))
+    scale = 1.0
+    if len(t) > 2 and length > 0:
+        scale = float(np.clip((f[t[-1]] - f[t[0]]) / length, *FOOT_LENGTH_RANGE))
+    along = sum(abs(f[t[-1]] - f[t[k]] - scale * (tpl[-1] - tpl[k])) for k in range(len(t) - 1))
+    up = sum(abs(h[t[k]] - h[t[0]] - scale * (tpl_h[k] - tpl_h[0])) for k in range(1, len(t) - 1))
+    return along + FOOT_HEIGHT_WEIGHT * up
 
 
 def consensus_pose(

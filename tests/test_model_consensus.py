@@ -303,3 +303,21 @@ def test_a_tied_toe_marker_is_told_from_the_ankle_by_the_heel(facing: int) -> No
     assert facing_from_feet(low, 1218.0) == facing
     # Without the heels neither reading has markers on both sides: the feet abstain.
     assert facing_from_feet(low[:2], 1218.0) == 0
+
+
+@pytest.mark.parametrize("ratio", [1.0, 1.1, 1.2])
+def test_a_shoe_reflector_just_in_front_of_the_ankle_leaves_it_the_ankle(ratio: float) -> None:
+    # The `shoes` set-up's static pose on btk_PiG_Motion-FlatFoot-Full: the shoe's
+    # reflector 15 mm behind the ankle marker, 18 mm below it and 39 mm nearer the camera,
+    # so the ankle sat behind it as a far twin and the model's ankle was the reflector
+    # (the real ankle was taken for the far heel). The far foot shows no ankle marker.
+    # (On a foot 0.8 as long the reflector lies within the twin tolerance of the heel
+    # too, which then hides behind it: not handled.)
+    P = _short_near_foot(_pose(), ratio)
+    P[MARKER_INDEX["L_TOE"], 0] = P[MARKER_INDEX["R_TOE"], 0]  # both feet as long
+    ank = P[MARKER_INDEX["R_ANK"]]
+    shoe = ank + np.array([-15.0, -39.0, -18.0])
+    idx = label_pose(np.vstack([P[SEEN], shoe]), 1, LAYOUT)
+    for name in ("R_ANK", "R_HEE", "R_TOE", "L_HEE", "L_TOE"):
+        assert idx[MARKER_INDEX[name]] == SEEN.index(MARKER_INDEX[name]), name
+    assert len(SEEN) not in idx
