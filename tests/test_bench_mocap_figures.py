@@ -148,3 +148,26 @@ def test_the_twelve_marker_figures_count_only_the_model_markers() -> None:
     spread = mocap.trial_spread([s, mocap.Score(visible=1)])  # a trial without model markers
     assert spread["detected_12_trial_mean"] == pytest.approx(200 / 3)
     assert math.isnan(spread["detected_12_trial_sd"])
+
+
+def test_the_twelve_marker_3d_error_leaves_out_the_far_leg() -> None:
+    pos = _leg_positions(2500.0, 2700.0)  # left side nearer: the right knee is not in the model
+    near, far = MARKER_NAMES.index("L_KNE"), MARKER_NAMES.index("R_KNE")
+    pixel = np.full((len(MARKER_NAMES), 2), np.nan)
+    visible = np.zeros(len(MARKER_NAMES), bool)
+    pixel[[near, far]] = [[20.0, 100.0], [60.0, 100.0]]
+    visible[[near, far]] = True
+    # both knees found and located, the near one 3 mm too far, the far one 40 mm
+    located = np.zeros((2, 3, 3))
+    located[0, :] = pos[near] + [0.0, 0.0, 3.0]
+    located[1, :] = pos[far] + [0.0, 0.0, 40.0]
+    mk, gt = literal_frame(pixel, visible, pos, pixel[[near, far]], located)
+    s = mocap.Score()
+    mocap.score_frame(s, mk, gt, gate=4.0)
+    r = mocap.summarise(s)
+    assert sorted(s.errors) == pytest.approx([3.0, 40.0])
+    assert r["err_median_mm"] == pytest.approx(21.5)
+    assert r["err_median_mm_12"] == pytest.approx(3.0)
+    assert r["err_p95_mm_12"] == pytest.approx(3.0)
+    pooled = mocap.summarise(mocap.merge_scores([s, s]))
+    assert pooled["err_median_mm_12"] == pytest.approx(3.0)
