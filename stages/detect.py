@@ -830,6 +830,7 @@ def split_merged(
     iterations: int = 5,
     previous: np.ndarray | None = None,
     gate: float = 30.0,
+    separation_max: float = 5.0,
 ) -> Components:
     """Split blobs shaped like two merged markers (departure, optional ``split_merged``).
 
@@ -838,7 +839,9 @@ def split_merged(
     frame's other blobs, its area is ``area_ratio``-``area_max`` times the median, its
     weighted covariance has an eigenvalue ratio of at least ``elongation``, and a weighted
     2-means along its principal axis gives two halves of at least ``min_area`` pixels whose
-    centroids are at least ``separation`` median marker radii apart. Each half gets its own
+    centroids are ``separation`` to ``separation_max`` median marker radii apart (two touching
+    discs of radius R lie 2 R apart, about three marker radii r_m, as r_m is about two thirds
+    of R; halves further apart make a line, a glint or a seam, not a pair). Each half gets its own
     Alg. 2 statistics (weights ``P - e_d``). Needs at least 3 blobs for the medians.
 
     Motion blur: with ``previous`` (the frame before's :func:`blob_record`), a blob matched
@@ -894,7 +897,8 @@ def split_merged(
         if min(int(h.sum()) for h in halves) < 3:
             continue
         stats = [_part_stats(X[h], val[h], wt[h]) for h in halves]
-        if np.hypot(*(stats[0][0] - stats[1][0])) < separation * med_r:
+        apart = np.hypot(*(stats[0][0] - stats[1][0]))
+        if not separation * med_r <= apart <= separation_max * med_r:
             continue
         cen[i], rm[i], rr[i], k[i], area[i] = stats[0]
         extra.append(stats[1])

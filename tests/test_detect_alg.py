@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 
 import cv2
@@ -317,6 +318,38 @@ def test_a_merged_pair_moving_slower_than_its_separation_is_still_split() -> Non
     # faster along its own axis than its separation per frame: read as one blurred marker
     fast = previous_record([*truth[:4], (102.1 - 6.0, 80.2)])
     assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=fast).blobs.count == 5
+
+
+def line_scene(length: float) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    """Four single markers and a thin bright line ``length`` px long along u (a glint on
+    an edge, a flying-pixel seam): 1.5-3 times a marker's area, elongated, but far longer
+    than two touching markers."""
+    img = frame(noise=10.0, seed=3)
+    singles = [(20.3, 20.6), (60.7, 25.2), (120.1, 30.4), (40.5, 90.9)]
+    for u, v in singles:
+        disc(img, u, v, 2.5, 60000.0)
+    for k in range(int(4 * length) + 1):
+        disc(img, 90.0 + k / 4, 80.2, 0.9, 30000.0)
+    return u16(img), singles
+
+
+@pytest.mark.parametrize("length", [18.0, 20.0])
+def test_a_line_longer_than_two_touching_markers_is_not_split(
+    length: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # bz_HC034A_straight_HC034A07, frame 50 with every splitter on: a thin 23 px streak
+    # beside the hidden hip, 1.5 times the median area, was split into two parts 10 px
+    # (6.7 median marker radii) apart, and one took the hip label. Two merged discs lie at
+    # most about three radii apart (touching at e_d, blur along their common motion aside).
+    img, singles = line_scene(length)
+    p = detect.PARAMS.resolve({"n": 5, "split_merged": True})
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p)
+    assert det.blobs.count == 5
+    assert nearest(det.centroid, singles).max() < 0.5
+    # without the bound on the halves' separation the line is two "markers"
+    unbounded = functools.partial(detect.split_merged, separation_max=np.inf)
+    monkeypatch.setattr(detect, "split_merged", unbounded)
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p).blobs.count == 6
 
 
 def test_split_is_off_by_default() -> None:
