@@ -72,51 +72,37 @@ Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and
   too; it replaced OpenCV in the Alg. 1 loop because OpenCV's call, with its mask and
   statistics, cost about three times as much on these small mosaics. Kernels compile on
   first use, not at import, and are cached on disk.
-- **Touching markers (optional, ``split_cores``, off by default).** Heel and ankle, the
-  two PSI or ASI seen side-on, crossing feet: markers whose images touch form one
-  component and one centroid between them. :func:`split_cores` splits a blob that holds
-  two or more separate *cores*: regions of its pixels near its peak level (``core_depth``;
-  an intensity valley separates them), or of those inside the blob eroded by the
-  4-neighbourhood or the 3x3 square (which cut the neck of two touching saturated discs,
-  whose flat top has no valley). A single marker,
-  however blurred, is a convex spot with one core and is never split; lines (tape, a
-  pole's highlight) are excluded by their low fill ratio (``split_min_fill``). On all
-  bundled walks it raises detection from 96.34 to 97.76 % and recall at 0.5 px from 87.81
-  to 90.18 % at about the same false-blob rate (0.859 vs 0.844 per frame); most remaining
-  misses are markers whose image overlaps another visible marker's, which in one frame
-  look like one blurred marker (``gaitflow bench mocap --ablation``: ``adaptive-cores``).
-  It is off by default because the model and label stages do worse with the extra,
-  correct blobs: in the static trial the split far-side toe shifts the model's marker
-  assignment (THI taken for KNE), and labelling of btk_PiG_Motion3_FF drops from 97.0 to
-  81.3 % (94.0 % with the split in walks only); see ``docs/readme/_detect_notes.md``.
-- **Markers seen apart in the frame before (optional, ``split_tracked``, off by
-  default).** A blob that took in two blobs of the previous frame lying close together,
-  and grew, is split by a 2-means seeded with their offset (:func:`split_tracked`). It
-  uses the detector's own previous frame only (no label, no truth), so it needs no size
-  prior, and a blob that is one marker in both frames is never split. On all bundled
-  walks it raises detection from 96.33 to 97.50 % and recall at 0.5 px from 87.93 to
-  89.70 %, at 0.82 false blobs per frame against 0.78 (most of the extra ones lie on a
-  marker hidden by more than half, which the bench does not count as visible); with
-  ``split_cores`` as well, 98.67 %. It is off by default for the same reason as the
-  others: end to end, the label stage does no better with the extra blobs (README, mocap
-  section). The splitters run in the order tracked, cores, merged; a part one of them made
-  has no pixels of its own (``ids`` -1) and the next leaves it alone.
-- **Merged markers (optional, ``split_merged``, off by default).** Two markers closer in
-  the image than their diameter (left and right PSI seen side-on) form one blob with one
-  centroid between them. :func:`split_merged` splits a blob whose area is 1.5-3x the
-  frame's median and whose weighted covariance is elongated (eigenvalue ratio >= 2) by a
-  weighted 2-means along its principal axis, when the halves are at least two median
-  marker radii apart. On the simulator (all bundled walks) it raises detection from 96.34
-  to 98.53 % and recall at 0.5 px from 87.81 to 91.07 %, but adds 0.07 false blobs per
-  frame (single blurred markers split in two: 48 false blobs next to a visible marker in
-  1641 frames against 24 with ``split_cores``; non-marker lights split: 703 against 645),
-  and it hurts labelling like ``split_cores``, so it is off by default;
-  ``gaitflow bench mocap --ablation`` reports it (``adaptive-split``). A blob that moved
-  along its elongation, since the frame before, by at least the streak it shows is left
-  whole (a marker's blur streak is never longer than its motion per frame): without that
-  test a knee marker in swing was split in two in 63 frames of one walk and the label
-  stage dropped the knee. With the test, on all bundled walks, it detects 97.94 % (98.67 %
-  without) and recalls 90.48 % within 0.5 px (91.54 %).
+- **Merged markers: three splitters, on by default since the thirtieth session.** Heel
+  and ankle, the two PSI or ASI seen side-on, crossing feet: markers whose images touch or
+  overlap form one component and one centroid between them. They run in the order
+  tracked, cores, merged; a part one of them made has no pixels of its own (``ids`` -1)
+  and the next leaves it alone. Each uses the detector's own frames only (no label, no
+  truth). On all five bundled walks the three together detect 98.93 % of the visible
+  markers (96.33 % without them) and 99.60 % of the paper's twelve, and recall 91.52 %
+  within 0.5 px (87.93 %) (``gaitflow bench mocap --ablation``: ``adaptive-nosplit`` and
+  one row per splitter alone). They were off until then because end to end the label
+  stage did no better with the extra blobs; replayed over the 41 rows of the gait
+  variation table (README, mocap section) they now find more gait events (heel strikes
+  missed 38.9 -> 34.6 %) and measure 10 % more steps, for 0.1 point of labelling.
+
+  - ``split_tracked`` (:func:`split_tracked`): a blob that took in two blobs of the
+    previous frame lying close together, and grew, is split by a 2-means seeded with their
+    offset. A blob that is one marker in both frames is never split.
+  - ``split_cores`` (:func:`split_cores`): a blob that holds two or more separate *cores*,
+    regions of its pixels near its peak level (``core_depth``; an intensity valley
+    separates them), or of those inside the blob eroded by the 4-neighbourhood or the 3x3
+    square (which cut the neck of two touching saturated discs, whose flat top has no
+    valley). A single marker, however blurred, is a convex spot with one core and is never
+    split; lines (tape, a pole's highlight) are excluded by their low fill ratio
+    (``split_min_fill``).
+  - ``split_merged`` (:func:`split_merged`): a blob whose area is 1.5-3x the frame's median
+    and whose weighted covariance is elongated (eigenvalue ratio >= 2) is split by a
+    weighted 2-means along its principal axis, when the halves lie 2-5 median marker radii
+    apart (two touching discs lie about 3 apart; a 23 px streak beside a hidden hip, 6.7
+    apart, took the hip label). A blob that moved along its elongation, since the frame
+    before, by at least the streak it shows is left whole (a marker's blur streak is never
+    longer than its motion per frame): without that test a knee marker in swing was split
+    in two in 63 frames of one walk and the label stage dropped the knee.
 - **Sub-pixel refinement (optional, ``refine``, off by default).** Saturated markers are
   flat-topped: with e_d near 65535 every pixel above it weighs the same and Alg. 2's
   centroid is quantised; the sub-pixel information is in the partly covered rim below e_d.
@@ -259,23 +245,23 @@ PARAMS = ParamSet(
         Param(
             "split_merged",
             bool,
-            False,
+            True,
             "-",
-            "split a blob shaped like two merged markers in two (departure, optional)",
+            "split a blob shaped like two merged markers in two (departure)",
         ),
         Param(
             "split_tracked",
             bool,
-            False,
+            True,
             "-",
-            "split a blob into two markers the previous frame saw apart (departure, optional)",
+            "split a blob into two markers the previous frame saw apart (departure)",
         ),
         Param(
             "split_cores",
             bool,
-            False,
+            True,
             "-",
-            "split a blob holding two or more separate bright cores (departure, optional)",
+            "split a blob holding two or more separate bright cores (departure)",
         ),
         Param(
             "core_depth",
@@ -832,7 +818,7 @@ def split_merged(
     gate: float = 30.0,
     separation_max: float = 5.0,
 ) -> Components:
-    """Split blobs shaped like two merged markers (departure, optional ``split_merged``).
+    """Split blobs shaped like two merged markers (departure, ``split_merged``).
 
     Two markers closer than their diameters in the image (left and right PSI seen side-on)
     give one component and one centroid between them. A blob is split when, against the
@@ -1044,7 +1030,7 @@ def split_tracked(
     iterations: int = 4,
 ) -> tuple[Components, np.ndarray]:
     """Split a blob into the two markers the previous frame saw separately (departure,
-    optional ``split_tracked``).
+    ``split_tracked``).
 
     Two markers whose images come to touch or overlap (heel and ankle, crossing feet,
     the two PSI) form one component and one centroid between them. In a single frame such

@@ -327,13 +327,20 @@ def mid_exposure_pixels(frames: list, lag: float) -> list[np.ndarray]:
     return list(pix - lag * np.nan_to_num(vel))
 
 
-# The detect option each ablation row turns on (``adaptive-<name>``); every row sets all
-# of them, so that a ``--param`` cannot change what a row means.
-ABLATIONS = {
-    "refine": "refine",
-    "split": "split_merged",
-    "cores": "split_cores",
-    "tracked": "split_tracked",
+# The detect options each ablation row (``adaptive-<name>``) sets over the defaults: the
+# sub-pixel refinement on, no splitting of merged blobs, or one splitter alone.
+SPLITTERS = ("split_merged", "split_cores", "split_tracked")
+ABLATIONS: dict[str, dict[str, bool]] = {
+    "refine": {"refine": True},
+    "nosplit": dict.fromkeys(SPLITTERS, False),
+    **{
+        name: {s: s == key for s in SPLITTERS}
+        for name, key in (
+            ("split", "split_merged"),
+            ("cores", "split_cores"),
+            ("tracked", "split_tracked"),
+        )
+    },
 }
 
 
@@ -347,16 +354,17 @@ def run_stages(
 ) -> None:
     """Run clean -> detect -> locate cores on rendered frames and score them.
 
-    ``ablation``: a key of :data:`ABLATIONS` (that detect option on), or empty (all off).
-    ``overrides``: per stage, parameter overrides (``--param``); the detect keys each method
-    row sets (method and the :data:`ABLATIONS` options) keep the row's values.
+    ``ablation``: a key of :data:`ABLATIONS` (its detect options over the defaults), or
+    empty (the defaults). ``overrides``: per stage, parameter overrides (``--param``); the
+    detect keys a row sets (its method and its :data:`ABLATIONS` options) keep the row's
+    values.
     """
     from gaitflow.stages import clean, detect, locate
 
     if ablation and ablation not in ABLATIONS:
         raise ConfigError(f"bench mocap: unknown ablation {ablation!r} (known: {list(ABLATIONS)})")
     ov = dict(overrides or {})
-    row = {"method": method, **{key: a == ablation for a, key in ABLATIONS.items()}}
+    row = {"method": method, **(ABLATIONS[ablation] if ablation else {})}
     ov["detect"] = {**ov.get("detect", {}), **row}
     state = {k: s.init(s.params.resolve(ov.get(k, {}))) for k, s in _specs().items()}
     clock = time.thread_time  # CPU time of this thread: a shared machine's waits excluded
@@ -668,8 +676,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ablation",
         action="store_true",
-        help="also run adaptive with each optional detect step: the sub-pixel refinement and "
-        "the three ways of splitting merged blobs (split_merged, split_cores, split_tracked)",
+        help="also run adaptive with the sub-pixel refinement, without splitting merged blobs, "
+        "and with each way of splitting them alone (split_merged, split_cores, split_tracked)",
     )
     p.add_argument(
         "--param",
@@ -677,7 +685,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar="STAGE.NAME=VALUE",
         help="a clean, detect or locate parameter override for every method row, e.g. "
-        "detect.step6_saturated_only=true (the row's own method, refine and split keys win)",
+        "detect.step6_saturated_only=true (a row's own method and ablation keys win)",
     )
     add_json_flag(p)
     p.set_defaults(func=_run)
