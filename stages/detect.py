@@ -768,10 +768,15 @@ def _blob_pixels(roi: Roi, comps: Components, i: int) -> tuple[np.ndarray, ...]:
     return np.stack([roi.flat_u[idx], roi.flat_v[idx]], axis=1), val, val - comps.threshold
 
 
+def _centroid(X: np.ndarray, wt: np.ndarray) -> np.ndarray:
+    """Weighted centroid (2,) of pixels ``X`` (n, 2) with weights ``wt`` (n,)."""
+    return (wt[:, None] * X).sum(axis=0) / wt.sum()
+
+
 def _part_stats(X: np.ndarray, val: np.ndarray, wt: np.ndarray) -> tuple:
     """Alg. 2 statistics (centroid, r_m, r_r, k, area) of one part of a blob: pixels ``X``
     (n, 2) frame (u, v), IR ``val`` and weights ``wt`` (n,)."""
-    ch = (wt[:, None] * X).sum(axis=0) / wt.sum()
+    ch = _centroid(X, wt)
     dist = np.hypot(*(X - ch).T)
     return (ch, float(np.sum(wt * dist) / wt.sum()), float(dist.max()), float(val.mean()),
             int(X.shape[0]))  # fmt: skip
@@ -1000,7 +1005,7 @@ def split_cores(
             wt = (v - e) * share[:, j]
             on = share[:, j] > 0
             sw = wt.sum()
-            ch = (wt[:, None] * X).sum(axis=0) / sw
+            ch = _centroid(X, wt)
             dist = np.hypot(*(X[on] - ch).T)
             parts.append((ch, float(np.sum(wt[on] * dist) / sw), float(dist.max()),
                           float(np.sum(v * share[:, j]) / share[:, j].sum()),
@@ -1093,7 +1098,7 @@ def split_tracked(
             g = _nearest_seed(X, seeds)
             if g.min() == g.max():
                 break
-            seeds = np.stack([_part_stats(X[g == h], val[g == h], wt[g == h])[0] for h in (0, 1)])
+            seeds = np.stack([_centroid(X[g == h], wt[g == h]) for h in (0, 1)])
         g = _nearest_seed(X, seeds)
         if min(np.count_nonzero(g == 0), np.count_nonzero(g == 1)) < 3:
             continue
