@@ -139,7 +139,7 @@ FOOT_HEIGHT_WEIGHT = 0.5
 # ankle's mark in facing_from_feet.
 FOOT_HEIGHT_TIE = 15.0
 # The near foot's markers in a side view, rearmost first (the far foot shows heel and toe).
-NEAR_FOOT = ("HEE", "ANK", "TOE")
+FOOT_SITES = ("HEE", "ANK", "TOE")
 # A foot marker less than this far (mm, along the walking axis) from the ankle lies on
 # neither side of it (facing_from_feet).
 FOOT_SIDE_MM = 20.0
@@ -519,7 +519,7 @@ def label_pose(
     shank_f = f[max(shank, key=lambda i: h[i])] if shank else None
     near_low = _one_foot([i for i in low_all if is_near[i]], f, FOOT_SPAN_FRAC * H, shank_f)
     scaled = layout * (H / H0)
-    near_low = _fit_foot(near_low, f, h, scaled, NEAR_FOOT)
+    near_low = _fit_foot(near_low, f, h, scaled, FOOT_SITES)
     if len(near_low) == 3:
         # The far foot shows only its heel and toe, so a far twin of the near foot's middle
         # blob that fits the ankle's place better is no far marker but the near ankle, with
@@ -530,8 +530,8 @@ def label_pose(
             if is_near[j] or e[j] <= e[mid] or max(abs(f[j] - f[mid]), abs(h[j] - h[mid])) >= tol:
                 continue
             swapped = (near_low[0], int(j), near_low[2])
-            if _foot_misfit(swapped, f, h, scaled, NEAR_FOOT) < _foot_misfit(
-                tuple(near_low), f, h, scaled, NEAR_FOOT
+            if _foot_misfit(swapped, f, h, scaled, FOOT_SITES) < _foot_misfit(
+                tuple(near_low), f, h, scaled, FOOT_SITES
             ):
                 near_low = sorted(swapped, key=lambda i: f[i])
                 is_near[j] = True
