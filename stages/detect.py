@@ -143,6 +143,9 @@ _SQUARE = np.ones((3, 3), np.uint8)
 # saturated pixels, so the threshold never rises past it.
 E_MAX = float(SATURATED - 1)
 
+# The three ways of splitting a blob of merged markers, in the order they run.
+SPLITTERS = ("split_tracked", "split_cores", "split_merged")
+
 PARAMS = ParamSet(
     "detect",
     (

@@ -238,13 +238,10 @@ def scene(pair_gap: float) -> tuple[np.ndarray, list[tuple[float, float]]]:
     return u16(img), singles + pair
 
 
-SPLITTERS = ("split_merged", "split_cores", "split_tracked")
-
-
 def only(name: str, on: bool = True) -> dict[str, bool]:
     """The detect options with splitter ``name`` on (or off) and the other two off: each
     test below is about one splitter."""
-    return {s: on and s == name for s in SPLITTERS}
+    return {s: on and s == name for s in detect.SPLITTERS}
 
 
 def run(img: np.ndarray, split: bool) -> detect.Detection:
@@ -364,7 +361,7 @@ def test_a_line_longer_than_two_touching_markers_is_not_split(
 def test_every_splitter_is_on_by_default() -> None:
     # since the thirtieth session (module docstring): the 41 rows of the gait variation
     # table find more events with them, for 0.1 point of labelling
-    assert all(detect.PARAMS.resolve({})[s] is True for s in SPLITTERS)
+    assert all(detect.PARAMS.resolve({})[s] is True for s in detect.SPLITTERS)
 
 
 # Splitting blobs that hold two separate bright cores (``split_cores``).

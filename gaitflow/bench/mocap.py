@@ -47,7 +47,7 @@ from gaitflow.errors import ConfigError
 from gaitflow.markers import CLUSTER_MODES, MARKER_NAMES, cluster_mode
 from gaitflow.params import parse_overrides
 from gaitflow.sim.variants import VARIANTS, sim_config, variant_changes
-from gaitflow.stages.detect import nearest_first_pairs
+from gaitflow.stages.detect import SPLITTERS, nearest_first_pairs
 from gaitflow.stages.label import surface_point
 
 BETAS = (0.5, 1.5, 2.5)
@@ -329,7 +329,6 @@ def mid_exposure_pixels(frames: list, lag: float) -> list[np.ndarray]:
 
 # The detect options each ablation row (``adaptive-<name>``) sets over the defaults: the
 # sub-pixel refinement on, no splitting of merged blobs, or one splitter alone.
-SPLITTERS = ("split_merged", "split_cores", "split_tracked")
 ABLATIONS: dict[str, dict[str, bool]] = {
     "refine": {"refine": True},
     "nosplit": dict.fromkeys(SPLITTERS, False),

@@ -2,7 +2,8 @@
 
 For each bundled trial (or ``--trials``) the calibration and static parts of a simulated
 session (quick protocol) run through calibrate, clean, detect, locate and model, with the
-detector's ``split_cores`` off and on. Each marker of the published model is compared with
+detector's three splitters of merged blobs off and on (``detect.SPLITTERS``, on by
+default). Each marker of the published model is compared with
 the truth's median position over the static frames, in the forward (a) and height (h)
 floor axes only: a marker's measured depth is noisy by 50-100 mm, so (a, h) tells a wrong
 blob from a right one. Truth is read here only, never by a stage.
@@ -26,10 +27,11 @@ OK_MM = 30.0
 
 
 def check_trial(trial: str, seed: int, split: bool, variant: str = "base") -> dict[str, Any]:
-    """Run calibration + static of one simulated trial (simulator set-up ``variant``); score
-    the model (see module doc)."""
+    """Run calibration + static of one simulated trial (simulator set-up ``variant``), with
+    every splitter of merged blobs on (``split``) or off; score the model (see module doc)."""
     from gaitflow.sim import simulate_session
     from gaitflow.sim.variants import sim_config
+    from gaitflow.stages.detect import SPLITTERS
     from gaitflow.stages.graph import load
     from gaitflow.stages.inline import InlinePipeline
     from gaitflow.stages.model import FloorFrame
@@ -42,7 +44,7 @@ def check_trial(trial: str, seed: int, split: bool, variant: str = "base") -> di
             got[stream].append(msg)
 
     stages = ["calibrate", "clean", "detect", "locate", "model"]
-    pipe = InlinePipeline(load(), stages, {"detect": {"split_cores": split}}, sink)
+    pipe = InlinePipeline(load(), stages, {"detect": dict.fromkeys(SPLITTERS, split)}, sink)
     truth = []
     for rec in ses.recordings.values():
         if rec.kind not in ("calibration", "static"):
@@ -81,11 +83,11 @@ def run(args: argparse.Namespace) -> int:
     for trial in args.trials or list_trials():
         for split in (False, True):
             r = check_trial(trial, args.seed, split, args.variant)
-            per[f"{trial}|split_cores={split}"] = r
+            per[f"{trial}|splitters={split}"] = r
             rows.append(
                 [trial, split, r["near_ok"], r["far_ok"], len(r["wrong"]), r["worst_ok_mm"]]
             )
-    cols = ["trial", "split_cores", "near ok /10", "far ok", "wrong", "worst ok mm"]
+    cols = ["trial", "splitters", "near ok /10", "far ok", "wrong", "worst ok mm"]
     title = f"subject model, variant {args.variant}"
     figures = {"seed": args.seed, "variant": args.variant, "trials": per}
     emit(args, figures, [format_table(title, cols, rows)])
@@ -95,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "model",
-        help="subject model vs the simulator's static truth, split_cores off and on",
+        help="subject model vs the simulator's static truth, detect's splitters off and on",
         description=__doc__,
         epilog="Example: gaitflow bench model --trials bz_HC002D_straight_HC002D06 --json",
         formatter_class=argparse.RawDescriptionHelpFormatter,
