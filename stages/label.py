@@ -331,6 +331,9 @@ class Geometry:
     # Standing signed offset (mm, + = forward) of the THI and TIB wands off their segments'
     # sagittal lines (HIP-KNE, KNE-ANK): see _on_segment.
     wand_off: Mapping[str, float] = field(default_factory=dict)
+    # The side ("L" or "R") whose ankle, heel and toe the static pose measured at plausible
+    # lengths (FOOT_SCALE), or "" when it did not: that foot's triangle is the subject's.
+    foot_side: str = ""
 
     @classmethod
     def from_model(cls, model: SubjectModel | None) -> Geometry:
@@ -369,6 +372,7 @@ class Geometry:
         # labelling error (a crouched pose, merged blobs), not anatomy: the template's
         # length replaces it.
         t0 = tpl[:, [0, 1]]  # template (forward, height)
+        implausible: set[tuple[str, str]] = set()
         for a, b in SEGMENTS:
             ia, ib = SITES.index(a), SITES.index(b)
             dt = float(np.linalg.norm(t0[ia] - t0[ib]))
@@ -381,6 +385,7 @@ class Geometry:
             lo, hi = FOOT_SCALE if (a, b) in FOOT else (1.0 - PLAUSIBLE, 1.0 + PLAUSIBLE)
             if not lo <= ratio <= hi:
                 dist[ia, ib] = dist[ib, ia] = dt
+                implausible.add((a, b))
         fh = [0, 2]  # sagittal (f, h), as in _rigid
         off = [offsets[0 if sd == "near" else 1, SITES.index(s)] for sd, s in PELVIS]
         pelvis_d0 = {
@@ -395,7 +400,11 @@ class Geometry:
             # WAND_OFF_MAX of the segment's length.
             lim = WAND_OFF_MAX * float(dist[SITES.index(a), SITES.index(b)])
             wand_off[w] = float(np.clip(off, -lim, lim)) if np.isfinite(off) else 0.0
-        return cls(offsets, dist, sho_h, pelvis_d0, wand_off)
+        seen = extra.get("measured", {})
+        foot_side = ""
+        if model is not None and all(seen.get(k) is True for k in ("ANK", "HEE", "TOE")):
+            foot_side = "" if implausible & set(FOOT) else model.near_side
+        return cls(offsets, dist, sho_h, pelvis_d0, wand_off, foot_side)
 
     def d(self, a: str, b: str) -> float:
         return float(self.dist[SITES.index(a), SITES.index(b)])
@@ -874,6 +883,8 @@ def label_frame(
     (state, assign) : assign is (20,) int, the blob index per marker, -1 = none.
     """
     p = st.params
+    # The static pose's foot, when it measured one: what the walk's lengths are checked on.
+    static_foot = np.array([geo.d(a, b) for a, b in FOOT]) if geo.foot_side else None
     geo = _learned(geo, st)
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
@@ -1067,12 +1078,17 @@ def label_frame(
         prev_q=floor,
     )
     if st.direction:
-        st = _learn_foot(st, fm, assign, geo, "R" if st.direction > 0 else "L")
+        near = "R" if st.direction > 0 else "L"
+        same = static_foot if near == geo.foot_side else None
+        st = _learn_foot(st, fm, assign, geo, near, same)
     return st, assign
 
 
 FOOT_PRIOR = 5.0  # weight of the model's foot, in frames
 FOOT_RATE = 0.05  # slowest learning rate (exponential forgetting)
+# Largest relative difference of a walking frame's foot lengths from the static pose's
+# (same foot) that teaches the foot triangle (_learn_foot).
+FOOT_STATIC_GATE = 0.25
 
 
 def _learned(geo: Geometry, st: LabelState) -> Geometry:
@@ -1087,14 +1103,26 @@ def _learned(geo: Geometry, st: LabelState) -> Geometry:
 
 
 def _learn_foot(
-    st: LabelState, fm: np.ndarray, assign: np.ndarray, geo: Geometry, near: str
+    st: LabelState,
+    fm: np.ndarray,
+    assign: np.ndarray,
+    geo: Geometry,
+    near: str,
+    static: np.ndarray | None = None,
 ) -> LabelState:
     """Refine the foot triangle from a frame with the near ANK, HEE and TOE all labelled.
 
     The static pose often gives no foot (heel and ankle merge into one blob there, and the
     template's foot may be 20-30 % off the subject's); walking frames separate them. Only
     labels that passed every gate teach, and an observation far off the current
-    length is ignored (40 %), so a wrong frame cannot drag the model far.
+    length is ignored (40 %), so a wrong frame cannot drag the model far. ``static``: the
+    static pose's own lengths of this foot, when it measured them (``Geometry.foot_side``);
+    an observation more than ``FOOT_STATIC_GATE`` off them is ignored too. Markers on one
+    shoe keep their sagittal distances but for the foot's turn out of the sagittal plane
+    and the heel's silhouette depth; step by step within 40 % of the last length, wrong
+    frames had walked the learned heel from 58 to 36 mm behind the ankle on `shoes` (a
+    reflector under the ankle taken for the heel). The other foot's markers may be placed
+    otherwise (btk_c3dorg_sample04_Matt), so it learns as before.
     """
     idx = [MARKER_INDEX[f"{near}_{s}"] for s in ("ANK", "HEE", "TOE")]
     if (assign[idx] < 0).any():
@@ -1103,6 +1131,8 @@ def _learn_foot(
     cur = np.array([geo.d(a, b) for a, b in FOOT])
     obs = np.array([np.hypot(*(q[a] - q[b])[[0, 2]]) for a, b in FOOT])
     if not (np.isfinite(obs).all() and (np.abs(obs / cur - 1.0) < 0.4).all()):
+        return st
+    if static is not None and not (np.abs(obs / static - 1.0) < FOOT_STATIC_GATE).all():
         return st
     rate = max(FOOT_RATE, 1.0 / (FOOT_PRIOR + st.foot_n + 1))
     return replace(st, foot=cur + rate * (obs - cur), foot_n=st.foot_n + 1)

@@ -33,13 +33,18 @@ def test_on_segment_cost_for_a_wand_on_and_off_the_shank() -> None:
     assert off > 10.0 and past > 10.0
 
 
-def _geometry_with_foot(offs: dict[str, list[float]]) -> label.Geometry:
+def _geometry_with_foot(
+    offs: dict[str, list[float]], measured: dict[str, bool] | None = None
+) -> label.Geometry:
     hdr = SubjectModel.make_header("cam0", "static", 0, 0, True)
     extra = {"sho_height_mm": TEMPLATE_SHO_HEIGHT, "offsets_from_shoulder": offs}
+    if measured is not None:
+        extra["measured"] = measured
     m = SubjectModel(
         header=hdr,
         reference=np.full((20, 3), np.nan),
         distances=np.full((20, 20), np.nan),
+        near_side="R",
         extra=extra,
     )
     return label.Geometry.from_model(m)
@@ -105,3 +110,49 @@ def test_foot_lengths_learned_from_walking_frames_and_outliers_ignored() -> None
     far[2, :, 0] = 2.5 * ht
     st2 = label._learn_foot(st, far, assign, learned, "R")
     assert st2.foot_n == st.foot_n and np.allclose(st2.foot, st.foot)
+
+
+def _template_foot_offsets(k: float = 1.0) -> dict[str, list[float]]:
+    """The template's near ankle, heel and toe offsets, the foot scaled by k about the ankle."""
+    tpl = label.Geometry.from_model(None)
+    ank = tpl.rel_sho("near", "ANK")
+    return {f"near_{s}": (ank + k * (tpl.rel_sho("near", s) - ank)).tolist() for s in label.SITES}
+
+
+def test_the_static_foot_side_is_the_near_side_of_a_measured_plausible_foot() -> None:
+    foot = {"ANK": True, "HEE": True, "TOE": True}
+    assert _geometry_with_foot(_template_foot_offsets(), foot).foot_side == "R"
+    assert _geometry_with_foot(_template_foot_offsets(), {**foot, "HEE": False}).foot_side == ""
+    assert _geometry_with_foot(_template_foot_offsets()).foot_side == ""  # no flags
+    # a foot beyond FOOT_SCALE is a static labelling error, not the subject's foot
+    assert _geometry_with_foot(_template_foot_offsets(2.5), foot).foot_side == ""
+
+
+def _foot_frame(geo: label.Geometry, hee_gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Floor positions (3 blobs, 3 modes, 3) of a near foot whose heel lies ``hee_gap`` mm
+    behind the ankle (the template's toe), and the assignment naming them R_ANK, R_HEE,
+    R_TOE."""
+    ank = geo.rel_sho("near", "ANK")
+    toe = geo.rel_sho("near", "TOE")
+    hee = ank - np.array([hee_gap, 0.0, 0.0])
+    fm = np.repeat(np.stack([ank, hee, toe])[:, None, :], 3, axis=1)
+    assign = np.full(20, -1)
+    for b, s in enumerate(("ANK", "HEE", "TOE")):
+        assign[MARKER_INDEX[f"R_{s}"]] = b
+    return fm, assign
+
+
+def test_the_walk_teaches_the_foot_only_near_the_static_foot() -> None:
+    # `shoes`: a shoe's reflector under the ankle, taken for the heel, taught a foot whose
+    # heel crept from 58 to 36 mm behind the ankle, step by step within 40 % of the last.
+    geo = label.Geometry.from_model(None)
+    static = np.array([geo.d(a, b) for a, b in label.FOOT])
+    st = label.init(label.PARAMS.resolve({}))
+    d0 = geo.d("ANK", "HEE")
+    short, fm_a = _foot_frame(geo, 0.7 * d0)  # 30 % short: within 40 % of the last length
+    assert label._learn_foot(st, short, fm_a, geo, "R").foot_n == 1
+    assert label._learn_foot(st, short, fm_a, geo, "R", static).foot_n == 0
+    near, fm_b = _foot_frame(geo, 0.9 * d0)  # 10 % short: the foot's own variation
+    learned = label._learn_foot(st, near, fm_b, geo, "R", static)
+    assert learned.foot_n == 1 and learned.foot is not None
+    assert learned.foot[0] < d0
