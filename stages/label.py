@@ -334,6 +334,9 @@ class Geometry:
     # The side ("L" or "R") whose ankle, heel and toe the static pose measured at plausible
     # lengths (FOOT_SCALE), or "" when it did not: that foot's triangle is the subject's.
     foot_side: str = ""
+    # Those measured lengths (FOOT order, mm; empty without foot_side): kept apart from
+    # ``dist``, which the walk's learned foot replaces (_learned).
+    foot_lengths: tuple[float, ...] = ()
 
     @classmethod
     def from_model(cls, model: SubjectModel | None) -> Geometry:
@@ -404,7 +407,10 @@ class Geometry:
         foot_side = ""
         if model is not None and all(seen.get(k) is True for k in ("ANK", "HEE", "TOE")):
             foot_side = "" if implausible & set(FOOT) else model.near_side
-        return cls(offsets, dist, sho_h, pelvis_d0, wand_off, foot_side)
+        lengths = tuple(float(dist[SITES.index(a), SITES.index(b)]) for a, b in FOOT)
+        return cls(
+            offsets, dist, sho_h, pelvis_d0, wand_off, foot_side, lengths if foot_side else ()
+        )
 
     def d(self, a: str, b: str) -> float:
         return float(self.dist[SITES.index(a), SITES.index(b)])
@@ -883,8 +889,6 @@ def label_frame(
     (state, assign) : assign is (20,) int, the blob index per marker, -1 = none.
     """
     p = st.params
-    # The static pose's foot, when it measured one: what the walk's lengths are checked on.
-    static_foot = np.array([geo.d(a, b) for a, b in FOOT]) if geo.foot_side else None
     geo = _learned(geo, st)
     H = geo.sho_h
     dt_frames = max(1, frame_idx - st.frame) if st.frame >= 0 else 1
@@ -1079,8 +1083,8 @@ def label_frame(
     )
     if st.direction:
         near = "R" if st.direction > 0 else "L"
-        same = static_foot if near == geo.foot_side else None
-        st = _learn_foot(st, fm, assign, geo, near, same)
+        static = np.asarray(geo.foot_lengths) if near == geo.foot_side else None
+        st = _learn_foot(st, fm, assign, geo, near, static)
     return st, assign
 
 
