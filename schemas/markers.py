@@ -23,7 +23,9 @@ class Markers3D(Message):
     STREAM = "markers"
     VERSION = 1
 
-    centroid: np.ndarray = array_field("float64", (None, 2), "(u, v) px from Alg. 2")
+    centroid: np.ndarray = array_field(
+        "float64", (None, 2), "(u, v) px from Alg. 2; completed where a nearer surface hides part"
+    )
     marker_radius: np.ndarray = array_field("float64", (None,), "r_m, px")
     region_radius: np.ndarray = array_field("float64", (None,), "r_r, px")
     depth: np.ndarray = array_field("float64", (None, 3), "Z mm under modes normal/top/bottom")

@@ -5,11 +5,13 @@ stages' ``jit`` parameter, on by default, picks these). Every kernel reproduces 
 reference's result bit for bit: the same pixels, the same floating-point operations in the
 same order, sums in the order ``np.bincount`` takes them and the R8 sum in numpy's
 pairwise order (:func:`_pairwise_sum`); the labelling numbers components as OpenCV does
-(:func:`label`). The one exception is R9's ray norm (:func:`marker_points`), summed in the
-order this numpy's einsum uses, which may depend on numpy's SIMD build: positions agree to
-1e-9 mm at worst. What numba saves is numpy's per-call overhead on the small arrays of one
-frame (a few hundred calls of a few microseconds each): a kernel loops over the pixels or
-blobs instead. Kernels use plain element loops: slice assignments, ``np.argsort`` and
+(:func:`label`). Two exceptions: R9's ray norm (:func:`marker_points`), summed in the
+order this numpy's einsum uses, which may depend on numpy's SIMD build (positions agree to
+1e-9 mm at worst), and the occluder direction of :func:`complete_occluded`, summed in
+window order where the reference sums in depth order (centroids agree to 1e-9 px).
+What numba saves is numpy's per-call overhead on the small arrays of one frame (a few
+hundred calls of a few microseconds each): a kernel loops over the pixels or blobs
+instead. Kernels use plain element loops: slice assignments, ``np.argsort`` and
 array arithmetic each add seconds of compile time.
 
 Array conventions: images (row, col) = (v, u); pixels (u, v) = (column, row); IR amplitude
@@ -839,3 +841,108 @@ def marker_points(xy: np.ndarray, zs: np.ndarray, offset: bool, back: float) -> 
             pos[b, k, 1] = py
             pos[b, k, 2] = pz
     return pos
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def complete_occluded(
+    depth: np.ndarray,
+    cen: np.ndarray,
+    r: np.ndarray,
+    area: np.ndarray,
+    surface_z: np.ndarray,
+    D0: float,
+    maxd: float,
+    gap: float,
+    min_slab: int,
+    fmax: float,
+    peer_mm: float,
+    min_peers: int,
+    table_f: np.ndarray,
+    table_shift: np.ndarray,
+) -> tuple:
+    """``locate.complete_occluded`` (its numpy path is the reference): the centroids (N, 2)
+    with partly hidden markers completed, and which were (N,) bool. The direction's sums
+    run in window order, not in the reference's depth order, and the cut-disc shift is
+    interpolated here: centroids agree to 1e-9 px. ``table_f``, ``table_shift``: the cut
+    disc's visible fraction (increasing) and centroid shift in radii."""
+    n = cen.shape[0]
+    out = cen.copy()
+    done = np.zeros(n, np.bool_)
+    size = np.full(n, np.nan)
+    ok = np.zeros(n, np.bool_)
+    for b in range(n):
+        s = area[b] * surface_z[b] ** 2
+        if (
+            math.isfinite(s)
+            and s > 0
+            and math.isfinite(cen[b, 0])
+            and math.isfinite(cen[b, 1])
+            and math.isfinite(r[b])
+        ):
+            size[b] = s
+            ok[b] = True
+    peers = np.empty(n)
+    for b in range(n):
+        if not ok[b]:
+            continue
+        cnt = 0
+        for q in range(n):
+            if ok[q] and abs(surface_z[q] - surface_z[b]) <= peer_mm:
+                peers[cnt] = size[q]
+                cnt += 1
+        if cnt < min_peers:
+            continue
+        vals = np.sort(peers[:cnt])
+        K = vals[cnt // 2] if cnt % 2 else 0.5 * (vals[cnt // 2 - 1] + vals[cnt // 2])
+        if size[b] >= fmax * K:
+            continue
+        cu, cv, rb = cen[b, 0], cen[b, 1], r[b]
+        side = 2 * math.ceil(rb + D0) + 1
+        z = np.empty(side * side)
+        dd = np.empty(side * side)
+        du = np.empty(side * side)
+        dv = np.empty(side * side)
+        m = _window(depth, cu, cv, rb, D0, maxd, z, dd, du, dv)
+        if m < 2 * min_slab:
+            continue
+        zs = _sorted_depths(z, m)
+        # groups: runs of sorted depths with steps under ``gap``; the first two of at
+        # least ``min_slab`` px are the occluder and the surface behind it.
+        lo1 = hi1 = lo2 = hi2 = -1
+        i = 0
+        while i < m and lo2 < 0:
+            j = i + 1
+            while j < m and zs[j] - zs[j - 1] < gap:
+                j += 1
+            if j - i >= min_slab:
+                if lo1 < 0:
+                    lo1, hi1 = i, j
+                else:
+                    lo2, hi2 = i, j
+            i = j
+        if lo2 < 0:
+            continue
+        zlo, zhi = zs[lo1], zs[hi1 - 1]
+        su = 0.0
+        sv = 0.0
+        for q in range(m):
+            if zlo <= z[q] <= zhi:
+                w = 1.0 / max(du[q] * du[q] + dv[q] * dv[q], 1.0)
+                su += w * du[q]
+                sv += w * dv[q]
+        norm = math.hypot(su, sv)
+        if norm == 0.0:
+            continue
+        k2 = hi2 - lo2
+        mid = lo2 + k2 // 2
+        zb = zs[mid] if k2 % 2 else 0.5 * (zs[mid - 1] + zs[mid])
+        expected = K / zb**2
+        f = area[b] / expected
+        if not f < fmax:
+            continue
+        shift = np.interp(min(max(f, 0.5), 1.0), table_f, table_shift)
+        step = shift * math.sqrt(expected / math.pi) / norm
+        out[b, 0] += step * su
+        out[b, 1] += step * sv
+        done[b] = True
+    return out, done

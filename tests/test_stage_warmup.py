@@ -13,8 +13,9 @@ def test_locate_warmup_loads_the_kernels_for_decoded_and_writeable_frames() -> N
     locate.SPEC.warmup(locate.PARAMS.resolve({}))
     # a decoded bus message is read-only: numba compiles that as its own signature, which
     # the first frame off the bus would otherwise wait for
-    depth_types = {sig[0] for sig in alg_kernels.locate_depths.signatures}
-    assert {t.mutable for t in depth_types} == {True, False}
+    for kernel in (alg_kernels.locate_depths, alg_kernels.complete_occluded):
+        depth_types = {sig[0] for sig in kernel.signatures}
+        assert {t.mutable for t in depth_types} == {True, False}, kernel
 
 
 def test_every_kernel_stage_declares_its_warmup() -> None:
