@@ -936,6 +936,10 @@ def complete_occluded(
         k2 = hi2 - lo2
         mid = lo2 + k2 // 2
         zb = zs[mid] if k2 % 2 else 0.5 * (zs[mid - 1] + zs[mid])
+        k1 = hi1 - lo1
+        mid = lo1 + k1 // 2
+        zn = zs[mid] if k1 % 2 else 0.5 * (zs[mid - 1] + zs[mid])
+        zb = min(zb, zn + peer_mm)
         expected = K / zb**2
         f = area[b] / expected
         if not f < fmax:

@@ -996,17 +996,22 @@ def complete_occluded(
     toe behind the near leg, a pelvis marker behind the swinging arm or the body's own
     curve). Three measurements say so and by how much, all from this frame:
 
-    1. **Size.** A marker's blob area scales as 1 / Z^2, so ``K`` = the median over the
-       frame's blobs of area x Z^2 (Z = the normal-mode surface depth) is the area of an
+    1. **Size.** A marker's blob area scales as 1 / Z^2, so ``K`` = the median of area x
+       Z^2 (Z = the normal-mode surface depth) over the blobs whose Z lies within
+       ``occlusion_peer_mm`` of this one's (the subject's body, not reflectors on the
+       wall; at least ``occlusion_min_peers`` of them, itself included) is the area of an
        unhidden marker at 1 mm, and K / Z^2 the area expected at depth Z.
     2. **Occluder.** The blob's Alg. 3 window (half-size ceil(r_r + D0)) holds two
        surfaces: its valid depths, sorted, split where consecutive values step by
        ``occlusion_gap`` or more, into groups of at least ``min_slab`` pixels. The nearest
        group is the occluder, the next one the surface the marker is on.
     3. **Visible fraction.** f = area / (K / Z_behind^2), with Z_behind the median depth
-       of the second group. A marker beside a nearer surface that is not hidden (a
-       silhouette marker with its own body nearest and the wall behind) has f >= 1 at the
-       far depth and is left alone; completion needs f < ``occlusion_fraction``.
+       of the second group, but at most ``occlusion_peer_mm`` behind the occluder's (the
+       marker is on the body; a farther second surface is the floor or the wall seen past
+       the marker's edge). A marker beside a nearer surface that is not hidden (a
+       silhouette marker with its own body nearest and the wall behind) has f >= 1 at
+       that depth, well behind its own, and is left alone; completion needs
+       f < ``occlusion_fraction``.
 
     The centre then lies ``cut_disc_shift(f)`` expected radii (sqrt(K / Z_behind^2 / pi))
     from the centroid, towards the occluder: the inverse-square-distance weighted mean
@@ -1070,7 +1075,8 @@ def _occluder(
 ) -> tuple[np.ndarray, float] | None:
     """Step 2 of :func:`complete_occluded` for one blob: the unit direction (u, v) towards
     the nearest surface of its window and the median depth (mm) of the surface behind
-    that; None where the window does not hold two surfaces."""
+    that, at most ``occlusion_peer_mm`` behind the nearest one's; None where the window
+    does not hold two surfaces."""
     H, Wd = depth.shape
     u, v = centroid
     half = math.ceil(region_radius + p["D0"])
@@ -1092,7 +1098,10 @@ def _occluder(
     norm = float(np.hypot(*t))
     if norm == 0.0:
         return None
-    return t / norm, float(np.median(z[groups[1]]))
+    # the marker is on the body, within its depth behind the occluder: a farther second
+    # surface is the floor or the wall seen past the marker's edge
+    behind = min(float(np.median(z[groups[1]])), float(np.median(z[near])) + p["occlusion_peer_mm"])
+    return t / norm, behind
 
 
 def surface_offset(params: Mapping[str, Any], diameter: float) -> float:

@@ -26,14 +26,21 @@ def disc(shape: tuple[int, int], centre: np.ndarray) -> np.ndarray:
 
 
 def scene(
-    occluder_from: int | None = 73, shape: tuple[int, int] = (40, 90), peers: int = 4
+    occluder_from: int | None = 73,
+    shape: tuple[int, int] = (40, 90),
+    peers: int = 4,
+    wall_mm: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Depth (H, W) of a flat body at SURFACE_MM with marker holes, a nearer occluder (an
     arm, OCCLUDER_MM) over columns >= ``occluder_from`` (None: no occluder), and the blobs
     Alg. 2 would give: centroids of the visible marker pixels (K, 2), areas (K,) and
-    region radii (K,). ``peers``: how many unhidden markers share the frame."""
+    region radii (K,). ``peers``: how many unhidden markers share the frame. ``wall_mm``:
+    the last marker's left side shows a wall that far away instead of the body (its own
+    surface out of sight, as a far heel's behind the near leg can be)."""
     rng = np.random.default_rng(0)
     depth = SURFACE_MM + rng.normal(0.0, 1.5, shape)
+    if wall_mm is not None:
+        depth[:, 64:] = wall_mm + rng.normal(0.0, 1.5, (shape[0], shape[1] - 64))
     cols = np.arange(shape[1])[None, :].repeat(shape[0], axis=0)
     arm = np.zeros(shape, dtype=bool) if occluder_from is None else cols >= occluder_from
     depth[arm] = OCCLUDER_MM + rng.normal(0.0, 1.5, int(arm.sum()))
@@ -91,6 +98,21 @@ def test_partly_hidden_marker_is_completed_towards_the_occluder(
     np.testing.assert_array_equal(out[:-1], cen[:-1])  # the whole ones stay
 
 
+def test_a_wall_far_behind_stands_for_the_body_within_its_depth() -> None:
+    # The second surface past the arm is a wall 1.5 m behind the body: at the wall's
+    # depth the hidden marker would look whole (f = 1.5); the marker is on the body,
+    # so the depth behind the arm counts as at most occlusion_peer_mm (500 mm) behind it.
+    depth, cen, area, rr = scene(wall_mm=3500.0)
+    truth = CENTRES[-1]
+    out, done = complete(depth, cen, area, rr)
+    assert done.tolist() == [False] * 4 + [True]
+    assert out[-1, 0] > cen[-1, 0]
+    assert np.hypot(*(out[-1] - truth)) < 0.6 * np.hypot(*(cen[-1] - truth))
+    # Allowed the whole 1.5 m, it would not be completed.
+    _, far = complete(depth, cen, area, rr, occlusion_peer_mm=2000.0)
+    assert not far[-1]
+
+
 def test_whole_marker_beside_a_nearer_surface_stays() -> None:
     # The arm starts just past the last marker's disc: two surfaces in its window, but
     # its whole area.
@@ -133,9 +155,13 @@ def test_switched_off_or_no_blobs() -> None:
     assert empty.shape == (0, 2) and none.shape == (0,)
 
 
-@pytest.mark.parametrize("occluder_from", [None, 73, 74, 75])
-def test_compiled_kernel_equals_the_reference(occluder_from: int | None) -> None:
-    depth, cen, area, rr = scene(occluder_from)
+@pytest.mark.parametrize(
+    ("occluder_from", "wall_mm"), [(None, None), (73, None), (74, None), (75, None), (73, 3500.0)]
+)
+def test_compiled_kernel_equals_the_reference(
+    occluder_from: int | None, wall_mm: float | None
+) -> None:
+    depth, cen, area, rr = scene(occluder_from, wall_mm=wall_mm)
     a, da = complete(depth, cen, area, rr)
     b, db = complete(depth, cen, area, rr, jit=False)
     np.testing.assert_array_equal(da, db)
