@@ -844,6 +844,14 @@ def marker_points(xy: np.ndarray, zs: np.ndarray, offset: bool, back: float) -> 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _median_sorted(v: np.ndarray, lo: int, hi: int) -> float:
+    """The median of the sorted run ``v[lo:hi]`` (hi > lo), as ``np.median`` gives it."""
+    k = hi - lo
+    mid = lo + k // 2
+    return v[mid] if k % 2 else 0.5 * (v[mid - 1] + v[mid])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def complete_occluded(
     depth: np.ndarray,
     cen: np.ndarray,
@@ -892,8 +900,7 @@ def complete_occluded(
                 cnt += 1
         if cnt < min_peers:
             continue
-        vals = np.sort(peers[:cnt])
-        K = vals[cnt // 2] if cnt % 2 else 0.5 * (vals[cnt // 2 - 1] + vals[cnt // 2])
+        K = _median_sorted(np.sort(peers[:cnt]), 0, cnt)
         if size[b] >= fmax * K:
             continue
         cu, cv, rb = cen[b, 0], cen[b, 1], r[b]
@@ -933,13 +940,7 @@ def complete_occluded(
         norm = math.hypot(su, sv)
         if norm == 0.0:
             continue
-        k2 = hi2 - lo2
-        mid = lo2 + k2 // 2
-        zb = zs[mid] if k2 % 2 else 0.5 * (zs[mid - 1] + zs[mid])
-        k1 = hi1 - lo1
-        mid = lo1 + k1 // 2
-        zn = zs[mid] if k1 % 2 else 0.5 * (zs[mid - 1] + zs[mid])
-        zb = min(zb, zn + peer_mm)
+        zb = min(_median_sorted(zs, lo2, hi2), _median_sorted(zs, lo1, hi1) + peer_mm)
         expected = K / zb**2
         f = area[b] / expected
         if not f < fmax:

@@ -53,12 +53,13 @@ with these departures, each for the stated reason:
   far heel or toe behind the near leg, a pelvis marker behind the arm) is the centroid of
   its visible part, up to about half a radius off the centre, away from the occluder. Where
   the window holds a nearer surface beside the blob and the blob is smaller than an
-  unhidden marker at the depth behind that surface (the frame's marker size scaled by
-  1 / Z^2), the centroid is moved towards the occluder by the centroid shift of a disc cut
-  by a straight edge with that visible fraction. The published ``centroid`` and the ray of
+  unhidden marker at the depth behind that surface (at most ``occlusion_peer_mm`` behind
+  it; the size of the markers within that depth of the blob's, scaled by 1 / Z^2), the
+  centroid is moved towards the occluder by the centroid shift of a disc cut by a
+  straight edge with that visible fraction. The published ``centroid`` and the ray of
   R9 are the completed ones. On the simulator (``gaitflow bench mocap --all --frames 0``)
-  recall at 0.5 px rose from 91.52 to 92.85 % (the paper's twelve markers 93.26 to
-  94.20 %); docs/readme/mocap.md, "Partly hidden markers".
+  recall at 0.5 px rose from 91.52 to 93.03 % (the paper's twelve markers 93.26 to
+  94.25 %); docs/readme/mocap.md, "Partly hidden markers".
 - **D2 in px** ([A-3e]): the distance to (p, q) is measured in the image.
 - **Too few pixels** (R1): the margin is widened once by D0; if still fewer than 3 valid
   pixels the depth is NaN (a gap that post-processing fills).
@@ -239,7 +240,7 @@ PARAMS = ParamSet(
             0.9,
             "-",
             "a blob beside a nearer surface is completed when it shows less than this "
-            "fraction of an unhidden marker's area at its depth",
+            "fraction of an unhidden marker's area at the depth behind that surface",
             low=0.5,
             high=1.0,
         ),
@@ -248,8 +249,9 @@ PARAMS = ParamSet(
             float,
             500.0,
             "mm",
-            "blobs whose surface lies within this depth of a blob's (the subject's body) "
-            "set the marker size expected there",
+            "the subject's body depth: blobs whose surface lies within it of a blob's set "
+            "the marker size expected there; the surface behind an occluder counts as at "
+            "most this far behind it",
             low=0.0,
         ),
         Param(
