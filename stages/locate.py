@@ -1032,10 +1032,13 @@ def complete_occluded(
     centroid (N, 2) px, completed where a marker is partly hidden, and completed (N,) bool.
     """
     p = params
-    cen = np.array(centroid, dtype=np.float64).reshape(-1, 2)
-    area = np.asarray(area, dtype=np.float64).reshape(-1)
-    rr = np.asarray(region_radius, dtype=np.float64).reshape(-1)
-    sz = np.asarray(surface_z, dtype=np.float64).reshape(-1)
+    # fresh, C-ordered, writeable copies: the kernel then has one signature per depth
+    # image type, which warm-up compiles (a column of Alg. 3's depths is strided, except
+    # for one blob or none, and a decoded message's arrays are read-only)
+    cen = np.array(centroid, dtype=np.float64, order="C").reshape(-1, 2)
+    area = np.array(area, dtype=np.float64, order="C").reshape(-1)
+    rr = np.array(region_radius, dtype=np.float64, order="C").reshape(-1)
+    sz = np.array(surface_z, dtype=np.float64, order="C").reshape(-1)
     done = np.zeros(cen.shape[0], dtype=bool)
     if not p["occlusion_fix"]:
         return cen, done

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
+from gaitflow.schemas import Blobs, CleanFrame
 from gaitflow.stages import alg_kernels, clean, detect, locate
-from gaitflow.stages.warmup import run_chain
+from gaitflow.stages.warmup import _through_codec, run_chain
 
 from gaitflow.errors import StageError
 
@@ -26,3 +28,49 @@ def test_every_kernel_stage_declares_its_warmup() -> None:
 def test_a_stage_without_a_chain_is_named() -> None:
     with pytest.raises(StageError, match="gait"):
         run_chain("gait", {})
+
+
+def _kernel_signatures() -> dict[str, int]:
+    return {
+        name: len(obj.signatures)
+        for name, obj in vars(alg_kernels).items()
+        if hasattr(obj, "signatures")
+    }
+
+
+def _frame(blobs: int, readonly: bool) -> tuple[CleanFrame, Blobs]:
+    """A clean frame (a plane at 2.5 m with marker holes) and its blobs, decoded from the
+    bus (read-only) or writeable."""
+    rows, cols = np.mgrid[:48, :64]
+    depth = np.full((48, 64), 2500, np.uint16)
+    centres = np.array([[12.3, 10.6], [30.2, 20.4], [50.7, 33.1]])[:blobs]
+    for u, v in centres:
+        depth[(cols - u) ** 2 + (rows - v) ** 2 <= 4] = 0
+    h = CleanFrame.make_header("cam0", "walk-01", 0, 0)
+    cf = CleanFrame(
+        header=h, ir=np.zeros_like(depth), depth=depth, mask=np.zeros((48, 64), np.uint8)
+    )
+    bl = Blobs.follow(
+        h,
+        centroid=centres.reshape(-1, 2),
+        marker_radius=np.full(blobs, 2.0),
+        region_radius=np.full(blobs, 2.5),
+        mean_ir=np.full(blobs, 60000.0),
+        area=np.full(blobs, 13, np.int32),
+        threshold=30000.0,
+    )
+    return _through_codec(cf, readonly), _through_codec(bl, readonly)
+
+
+@pytest.mark.parametrize("blobs", [0, 1, 3])
+def test_no_kernel_compiles_after_warmup_whatever_the_blob_count(blobs: int) -> None:
+    # A kernel compiled at the first real frame stalls the stage for seconds on a fresh
+    # machine, and the joined input runs ahead: every array a kernel takes must have the
+    # types warm-up saw (a column of an (N, 3) array is strided for N > 1 only).
+    params = locate.PARAMS.resolve({})
+    locate.SPEC.warmup(params)
+    before = _kernel_signatures()
+    for readonly in (True, False):
+        cf, bl = _frame(blobs, readonly)
+        locate.step(locate.init(params), {"clean": cf, "blobs": bl})
+    assert _kernel_signatures() == before
