@@ -1032,16 +1032,16 @@ def complete_occluded(
     centroid (N, 2) px, completed where a marker is partly hidden, and completed (N,) bool.
     """
     p = params
-    # fresh, C-ordered, writeable copies: the kernel then has one signature per depth
-    # image type, which warm-up compiles (a column of Alg. 3's depths is strided, except
-    # for one blob or none, and a decoded message's arrays are read-only)
     cen = np.array(centroid, dtype=np.float64, order="C").reshape(-1, 2)
-    area = np.array(area, dtype=np.float64, order="C").reshape(-1)
-    rr = np.array(region_radius, dtype=np.float64, order="C").reshape(-1)
-    sz = np.array(surface_z, dtype=np.float64, order="C").reshape(-1)
     done = np.zeros(cen.shape[0], dtype=bool)
     if not p["occlusion_fix"]:
         return cen, done
+    # fresh, C-ordered, writeable copies: the kernel then has one signature per depth
+    # image type, which warm-up compiles (a column of Alg. 3's depths is strided, except
+    # for one blob or none, and a decoded message's arrays are read-only)
+    area = np.array(area, dtype=np.float64, order="C").reshape(-1)
+    rr = np.array(region_radius, dtype=np.float64, order="C").reshape(-1)
+    sz = np.array(surface_z, dtype=np.float64, order="C").reshape(-1)
     opts = (float(p["D0"]), float(p["max_depth"]), float(p["occlusion_gap"]))
     opts += (int(p["min_slab"]), float(p["occlusion_fraction"]))
     opts += (float(p["occlusion_peer_mm"]), int(p["occlusion_min_peers"]))
@@ -1163,8 +1163,7 @@ def step(state: LocateState, inputs: Inputs) -> tuple[LocateState, list]:
     rr = np.asarray(blobs.region_radius, dtype=np.float64)
     depth = np.asarray(frame.depth)
     zs = locate_depths(depth, centroid, rr, p)
-    area = np.asarray(blobs.area, dtype=np.float64)
-    centroid, _ = complete_occluded(depth, centroid, rr, area, zs[:, 0], p)
+    centroid, _ = complete_occluded(depth, centroid, rr, blobs.area, zs[:, 0], p)
     z, pos = marker_positions(centroid, zs, state.camera, p, state.diameter)
     out = Markers3D.follow(
         blobs.header,

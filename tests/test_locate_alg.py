@@ -104,26 +104,39 @@ def test_positions_backproject_and_marker_centre_offset() -> None:
     assert (z1 < 2500.0).all()
 
 
-def _msgs(camera: dict | None = None) -> tuple[CleanFrame, Blobs]:
-    d = plane_with_hole(shape=(424, 512), centre=(200.3, 150.6))
+def locate_inputs(
+    depth: np.ndarray,
+    centroid: np.ndarray,
+    region_radius: np.ndarray,
+    area: np.ndarray,
+    camera: dict | None = None,
+) -> tuple[CleanFrame, Blobs]:
+    """locate's inputs for one frame: a clean frame of ``depth`` (IR and mask blank) and
+    blobs at ``centroid`` (K, 2) with ``region_radius`` and ``area`` (K,)."""
     h = CleanFrame.make_header("cam0", "walk-01", 3, 0)
     cf = CleanFrame(
         header=h,
-        ir=np.zeros(d.shape, np.uint16),
-        depth=d,
-        mask=np.zeros(d.shape, np.uint8),
+        ir=np.zeros(depth.shape, np.uint16),
+        depth=depth,
+        mask=np.zeros(depth.shape, np.uint8),
         camera=camera or {},
     )
+    k = len(centroid)
     bl = Blobs.follow(
         h,
-        centroid=np.array([[200.3, 150.6]]),
-        marker_radius=np.array([2.0]),
-        region_radius=np.array([3.4]),
-        mean_ir=np.array([60000.0]),
-        area=np.array([30], np.int32),
+        centroid=np.asarray(centroid, dtype=np.float64).reshape(-1, 2),
+        marker_radius=np.full(k, 2.0),
+        region_radius=np.asarray(region_radius, dtype=np.float64),
+        mean_ir=np.full(k, 60000.0),
+        area=np.asarray(area).astype(np.int32),
         threshold=30000.0,
     )
     return cf, bl
+
+
+def _msgs(camera: dict | None = None) -> tuple[CleanFrame, Blobs]:
+    d = plane_with_hole(shape=(424, 512), centre=(200.3, 150.6))
+    return locate_inputs(d, np.array([[200.3, 150.6]]), np.array([3.4]), np.array([30]), camera)
 
 
 def test_step_uses_camera_from_clean_frame_and_param_override() -> None:

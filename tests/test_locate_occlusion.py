@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from gaitflow.schemas import Blobs, CleanFrame
 from gaitflow.stages import locate
+from test_locate_alg import locate_inputs
 
 SURFACE_MM = 2000.0
 OCCLUDER_MM = 1850.0
@@ -170,22 +170,7 @@ def test_compiled_kernel_equals_the_reference(
 
 def test_step_publishes_the_completed_centroid_and_its_ray() -> None:
     depth, cen, area, rr = scene()
-    h = CleanFrame.make_header("cam0", "walk-01", 3, 0)
-    cf = CleanFrame(
-        header=h,
-        ir=np.zeros(depth.shape, np.uint16),
-        depth=depth,
-        mask=np.zeros(depth.shape, np.uint8),
-    )
-    bl = Blobs.follow(
-        h,
-        centroid=cen,
-        marker_radius=np.full(len(cen), RADIUS_PX),
-        region_radius=rr,
-        mean_ir=np.full(len(cen), 60000.0),
-        area=area.astype(np.int32),
-        threshold=30000.0,
-    )
+    cf, bl = locate_inputs(depth, cen, rr, area)
     st = locate.init(params(surface_offset=False))
     _, (out,) = locate.step(st, {"clean": cf, "blobs": bl})
     assert np.hypot(*(out.centroid[-1] - CENTRES[-1])) < 0.15

@@ -7,6 +7,7 @@ import pytest
 from gaitflow.schemas import Blobs, CleanFrame
 from gaitflow.stages import alg_kernels, clean, detect, locate
 from gaitflow.stages.warmup import _through_codec, run_chain
+from test_locate_alg import locate_inputs
 
 from gaitflow.errors import StageError
 
@@ -46,19 +47,7 @@ def _frame(blobs: int, readonly: bool) -> tuple[CleanFrame, Blobs]:
     centres = np.array([[12.3, 10.6], [30.2, 20.4], [50.7, 33.1]])[:blobs]
     for u, v in centres:
         depth[(cols - u) ** 2 + (rows - v) ** 2 <= 4] = 0
-    h = CleanFrame.make_header("cam0", "walk-01", 0, 0)
-    cf = CleanFrame(
-        header=h, ir=np.zeros_like(depth), depth=depth, mask=np.zeros((48, 64), np.uint8)
-    )
-    bl = Blobs.follow(
-        h,
-        centroid=centres.reshape(-1, 2),
-        marker_radius=np.full(blobs, 2.0),
-        region_radius=np.full(blobs, 2.5),
-        mean_ir=np.full(blobs, 60000.0),
-        area=np.full(blobs, 13, np.int32),
-        threshold=30000.0,
-    )
+    cf, bl = locate_inputs(depth, centres, np.full(blobs, 2.5), np.full(blobs, 13))
     return _through_codec(cf, readonly), _through_codec(bl, readonly)
 
 
