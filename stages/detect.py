@@ -77,9 +77,11 @@ Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and
   overlap form one component and one centroid between them. They run in the order
   tracked, cores, merged; a part one of them made has no pixels of its own (``ids`` -1)
   and the next leaves it alone. Each uses the detector's own frames only (no label, no
-  truth). On all five bundled walks the three together detect 98.93 % of the visible
-  markers (96.33 % without them) and 99.60 % of the paper's twelve, and recall 91.52 %
-  within 0.5 px (87.93 %) (``gaitflow bench mocap --ablation``: ``adaptive-nosplit`` and
+  truth). On all five bundled walks the three together detected 98.93 % of the visible
+  markers (96.33 % without them) and 99.60 % of the paper's twelve, and recalled 91.52 %
+  within 0.5 px (87.93 %; 99.42 %, 99.71 % and 93.50 % with the thirty-second session's
+  optional learned streak ratio, below, and locate's completion of partly hidden markers)
+  (``gaitflow bench mocap --ablation``: ``adaptive-nosplit`` and
   one row per splitter alone). They were off until then because end to end the label
   stage did no better with the extra blobs; replayed over the 41 rows of the gait
   variation table (README, mocap section) they now find more gait events (heel strikes
@@ -103,7 +105,20 @@ Implementation notes (see ``../shared/reference/algorithms.md`` sections 3.1 and
     apart, took the hip label). A blob that moved along its elongation, since the frame
     before, by at least the streak it shows is left whole (a marker's blur streak is never
     longer than its motion per frame): without that test a knee marker in swing was split
-    in two in 63 frames of one walk and the label stage dropped the knee.
+    in two in 63 frames of one walk and the label stage dropped the knee. Option
+    ``streak_learned`` (thirty-second session, off by default) makes the bound the
+    camera's own: its streaks are at most a share of its motion (the exposure's share of
+    the frame interval), learned as the 0.9 quantile of streak / motion over its isolated
+    moving blobs (:func:`streak_ratios`, ``streak_quantile``, ``streak_min_samples`` 30,
+    one sample a frame, ``streak_window`` 300 kept per camera from trial to trial), 1 until
+    enough are in. With the simulator's exposure (12 of 33 ms) it settles near 0.3, and the
+    two PSI seen side-on, 3 px apart and moving 6 px a frame along their own axis, are
+    split instead of being read as one streak: detected 98.93 -> 99.42 %, recall at 0.5 px
+    93.03 -> 93.50 % (``gaitflow bench mocap --all --frames 0 --ablation``, row
+    ``adaptive-streak``). It is off because end to end it is a trade: a fast foot marker
+    in swing can streak beyond the learned share of its motion and is split, a shoe's reflector
+    is parted from the heel it touches, and the label stage names the extra blobs (README,
+    mocap section).
 - **Sub-pixel refinement (optional, ``refine``, off by default).** Saturated markers are
   flat-topped: with e_d near 65535 every pixel above it weighs the same and Alg. 2's
   centroid is quantised; the sub-pixel information is in the partly covered rim below e_d.
@@ -277,6 +292,52 @@ PARAMS = ParamSet(
             high=1.0,
         ),
         Param("min_core_area", int, 2, "px", "split_cores: smallest core", low=1),
+        Param(
+            "streak_learned",
+            bool,
+            False,
+            "-",
+            "split_merged: bound a single marker's blur streak by the share of its motion"
+            " learned from the camera's isolated moving blobs, not by its whole motion"
+            " (off: end to end a trade, README mocap section)",
+        ),
+        Param(
+            "streak_quantile",
+            float,
+            0.9,
+            "-",
+            "split_merged: a single marker's blur streak is taken to be at most this quantile"
+            " of the streak / motion ratios of the camera's isolated moving blobs",
+            low=0.0,
+            high=1.0,
+        ),
+        Param(
+            "streak_min_samples",
+            int,
+            30,
+            "blobs",
+            "split_merged: ratios needed before the learned one replaces 1 (an exposure as"
+            " long as the frame interval)",
+            low=1,
+        ),
+        Param(
+            "streak_every",
+            int,
+            1,
+            "frames",
+            "split_merged: sample the streak / motion ratio on one frame in this many (a"
+            " pixel pass of about 0.1 ms)",
+            low=1,
+        ),
+        Param(
+            "streak_window",
+            int,
+            300,
+            "blobs",
+            "split_merged: ratios sampled per camera (one a frame at most; none once this"
+            " many are kept, the exposure being the camera's)",
+            low=1,
+        ),
         Param(
             "split_min_fill",
             float,
@@ -786,9 +847,20 @@ def _part_stats(X: np.ndarray, val: np.ndarray, wt: np.ndarray) -> tuple:
             int(X.shape[0]))  # fmt: skip
 
 
+def _principal(X: np.ndarray, wt: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Weighted principal axes of pixels ``X`` (n, 2) about ``centre`` (2,): eigenvalues (2,)
+    ascending, eigenvectors (2, 2) as columns, and each pixel's coordinate along the major
+    (t) and the minor (n) axis, (n,) each."""
+    d = X - centre
+    ev, evec = np.linalg.eigh((d * wt[:, None]).T @ d / wt.sum())
+    return ev, evec, d @ evec[:, 1], d @ evec[:, 0]
+
+
 # Columns of the per-blob record detect keeps from one frame to the next (split_tracked,
 # split_merged).
 TRACK_U, TRACK_V, TRACK_AREA, TRACK_GROUP, TRACK_RR = range(5)
+# Largest image motion of a blob between two frames for the splitters' matching, px.
+TRACK_GATE_PX = 30.0
 
 
 def match_previous(
@@ -824,8 +896,9 @@ def split_merged(
     separation: float = 2.0,
     iterations: int = 5,
     previous: np.ndarray | None = None,
-    gate: float = 30.0,
+    gate: float = TRACK_GATE_PX,
     separation_max: float = 5.0,
+    streak_ratio: float = 1.0,
 ) -> Components:
     """Split blobs shaped like two merged markers (departure, ``split_merged``).
 
@@ -845,9 +918,12 @@ def split_merged(
     frame draws a streak at most d px long (the exposure is no longer than the frame
     interval), and a streak of length L, or two discs L apart, reach L further along the
     principal axis than across it. So the blob is left whole when its extent along the axis
-    less its extent across is at most its motion along the axis; whatever the exposure,
-    a blurred single marker is never split, and a pair is split unless it moves along its
-    own axis by more than its separation per frame.
+    less its extent across is at most ``streak_ratio`` times its motion along the axis. With
+    1 (an exposure as long as the frame interval) a blurred single marker is never split,
+    whatever the exposure, but a pair moving along its own axis by more than its separation
+    per frame is left whole too (the two PSI seen side-on, 3 px apart, moving 6 px a frame).
+    With ``streak_learned`` the detect stage passes the camera's own ratio, learned from its
+    isolated moving blobs (:func:`streak_ratios`, :func:`learned_streak_ratio`).
 
     Returns
     -------
@@ -872,14 +948,10 @@ def split_merged(
     split: list[int] = []
     for i in cand.tolist():
         X, val, wt = _blob_pixels(roi, comps, i)
-        d = X - cen[i]
-        C = (d * wt[:, None]).T @ d / wt.sum()
-        ev, evec = np.linalg.eigh(C)
+        ev, evec, t, n = _principal(X, wt, cen[i])
         if ev[1] < elongation * max(ev[0], 1e-9):
             continue
-        t = d @ evec[:, 1]
-        n = d @ evec[:, 0]
-        if np.ptp(t) - np.ptp(n) <= abs(float(motion[i] @ evec[:, 1])):
+        if np.ptp(t) - np.ptp(n) <= streak_ratio * abs(float(motion[i] @ evec[:, 1])):
             continue  # one marker's blur streak (a NaN motion compares False: no frame before)
         c = np.array([-math.sqrt(ev[1]), math.sqrt(ev[1])])
         for _ in range(iterations):  # weighted 2-means on the principal-axis coordinate
@@ -901,6 +973,67 @@ def split_merged(
     if not extra:
         return comps
     return _with_parts(comps, (cen, rm, rr, k, area), extra, split)
+
+
+def streak_ratios(
+    roi: Roi,
+    comps: Components,
+    previous: np.ndarray,
+    owner: np.ndarray,
+    min_motion: float = 4.0,
+    isolation: float = 4.0,
+    area_band: tuple[float, float] = (0.6, 1.5),
+) -> np.ndarray:
+    """How long a single marker's blur streak is against its motion, sampled on this
+    frame's fastest isolated moving blob (for the blur test of :func:`split_merged`).
+
+    A blob qualifies when it is one of Alg. 1's own (not a part a splitter made), is matched
+    to a blob of the frame before (``owner``, from :func:`match_previous`), moved at least
+    ``min_motion`` px, has an area within ``area_band`` times the frame's median (one
+    marker, not a merged pair) and no other blob within ``isolation`` times its r_r
+    (nothing merged into it). The fastest one that qualifies (the ratio is best resolved
+    there) gives the sample that test compares: its extent along its principal axis less
+    its extent across, over its motion along that axis, when that motion is at least
+    ``min_motion`` px. That is the exposure's share of the frame interval as the
+    threshold e_d sees the streak (a streak's dim ends fall below e_d). One pixel pass
+    per frame. Needs at least 3 blobs for the median area.
+
+    Returns
+    -------
+    (S,) ratios, S <= 1.
+    """
+    none = np.zeros(0)
+    if comps.count < 3 or previous.shape[0] == 0:
+        return none
+    cen = comps.centroid
+    motion = cen - previous[owner, TRACK_U : TRACK_V + 1]  # owner -1: masked below
+    speed2 = np.einsum("ij,ij->i", motion, motion)
+    ok = (owner >= 0) & (comps.ids >= 0) & (speed2 >= min_motion * min_motion)
+    if not ok.any():
+        return none
+    med_a = float(np.median(comps.area))
+    ok &= (comps.area >= area_band[0] * med_a) & (comps.area <= area_band[1] * med_a)
+    for i in np.flatnonzero(ok)[np.argsort(-speed2[ok], kind="stable")].tolist():
+        gap = np.hypot(*(cen - cen[i]).T)
+        gap[i] = np.inf
+        if gap.min() <= isolation * comps.region_radius[i]:
+            continue
+        X, _, wt = _blob_pixels(roi, comps, i)
+        _, evec, t, n = _principal(X, wt, cen[i])
+        along = abs(float(motion[i] @ evec[:, 1]))
+        if along < min_motion:
+            return none
+        return np.array([(np.ptp(t) - np.ptp(n)) / along])
+    return none
+
+
+def learned_streak_ratio(samples: np.ndarray, quantile: float, min_samples: int) -> float:
+    """The ``streak_ratio`` for :func:`split_merged`: the ``quantile`` of a camera's
+    :func:`streak_ratios` samples, at most 1 (an exposure is no longer than the frame
+    interval); 1 until there are ``min_samples`` of them."""
+    if samples.size < min_samples:
+        return 1.0
+    return min(1.0, float(np.quantile(samples, quantile)))
 
 
 def split_cores(
@@ -1033,10 +1166,11 @@ def split_tracked(
     roi: Roi,
     comps: Components,
     previous: np.ndarray,
-    gate: float = 30.0,
+    gate: float = TRACK_GATE_PX,
     area_gain: float = 1.2,
     keep_area: float = 0.8,
     iterations: int = 4,
+    match: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[Components, np.ndarray]:
     """Split a blob into the two markers the previous frame saw separately (departure,
     ``split_tracked``).
@@ -1066,6 +1200,7 @@ def split_tracked(
     gate : largest image motion of a blob between two frames, px.
     area_gain, keep_area : growth tests above.
     iterations : 2-means iterations.
+    match : :func:`match_previous` of ``previous`` and these blobs within ``gate``, if made.
 
     Returns
     -------
@@ -1077,7 +1212,7 @@ def split_tracked(
         return comps, group
     pu = previous[:, TRACK_U : TRACK_V + 1]
     pa, pg, pr = previous[:, TRACK_AREA], previous[:, TRACK_GROUP], previous[:, TRACK_RR]
-    owner, d = match_previous(previous, comps.centroid, gate)
+    owner, d = match if match is not None else match_previous(previous, comps.centroid, gate)
     plan: dict[int, tuple[int, int]] = {}  # blob -> (previous blob matched, previous merged)
     for j in np.setdiff1d(np.arange(previous.shape[0]), owner).tolist():
         b = int(np.argmin(d[j]))
@@ -1332,6 +1467,9 @@ class CameraState:
     # The previous frame's final blobs (blob_record), for split_tracked and split_merged
     # (an array: left out of the dataclass's equality).
     previous: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)), compare=False)
+    # The last ``streak_window`` streak_ratios samples: the camera's exposure, kept from
+    # trial to trial like markers_saturate.
+    streaks: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
 
 
 @dataclass(frozen=True)
@@ -1356,6 +1494,7 @@ class Detection:
     candidates: int  # blobs before the max_blobs cut
     saturated_blobs: int = 0  # blobs holding a saturated pixel (counted only when needed)
     record: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # blob_record
+    streaks: np.ndarray = field(default_factory=lambda: np.zeros(0))  # streak_ratios samples
 
 
 def detect_frame(
@@ -1366,6 +1505,8 @@ def detect_frame(
     params: Mapping[str, Any],
     markers_saturate: bool = False,
     previous: np.ndarray | None = None,
+    streak_ratio: float = 1.0,
+    sample_streaks: bool = False,
 ) -> Detection:
     """Alg. 1 + Alg. 2 on one IR frame (pure).
 
@@ -1378,6 +1519,8 @@ def detect_frame(
     markers_saturate : the camera's markers were seen saturating: step 6 is the printed one
         even with ``step6_saturated_only``.
     previous : (P, 5) :func:`blob_record` of the camera's previous frame (``split_tracked``).
+    streak_ratio : ``split_merged``'s blur test (:func:`learned_streak_ratio`).
+    sample_streaks : measure :func:`streak_ratios` on Alg. 1's blobs (``Detection.streaks``).
     """
     previous = np.zeros((0, 5)) if previous is None else previous
     p = params
@@ -1422,12 +1565,19 @@ def detect_frame(
     if p["refine"] and comps.count:
         centroid = refine_centroids(roi, comps, e_low, p["connectivity"])
     group = comps.area.astype(np.float64)
+    # Alg. 1's blobs matched to the frame before's, shared by split_tracked and the streaks.
+    match = None
+    if previous.shape[0] and (p["split_tracked"] or sample_streaks):
+        match = match_previous(previous, comps.centroid, TRACK_GATE_PX)
+    streaks = np.zeros(0)
+    if sample_streaks and p["split_merged"] and match is not None:
+        streaks = streak_ratios(roi, comps, previous, match[0])
     splitters = []
     if p["split_tracked"]:
 
         def tracked(c: Components) -> Components:
             nonlocal group
-            c, group = split_tracked(roi, c, previous)
+            c, group = split_tracked(roi, c, previous, match=match)
             return c
 
         splitters.append(tracked)
@@ -1436,7 +1586,9 @@ def detect_frame(
             lambda c: split_cores(roi, c, p["core_depth"], p["min_core_area"], p["split_min_fill"])
         )
     if p["split_merged"]:
-        splitters.append(lambda c: split_merged(roi, c, previous=previous))
+        splitters.append(
+            lambda c: split_merged(roi, c, previous=previous, streak_ratio=streak_ratio)
+        )
     for split_fn in splitters:
         if not comps.count:
             break
@@ -1467,6 +1619,7 @@ def detect_frame(
         comps.count,
         n_saturated,
         record,
+        streaks,
     )
 
 
@@ -1502,16 +1655,37 @@ def step(state: DetectState, inputs: Inputs) -> tuple[DetectState, list]:
     ir = np.asarray(frame.ir)
     if cs is None or cs.trial != trial:
         w, r_b = _anchor(ir, cal, p)
-        cs = CameraState(trial, w, r_b, markers_saturate=cs is not None and cs.markers_saturate)
+        cs = CameraState(
+            trial,
+            w,
+            r_b,
+            markers_saturate=cs is not None and cs.markers_saturate,
+            streaks=cs.streaks if cs is not None else np.zeros(0),
+        )
     elif cs.r_b <= 0:  # no blob seen yet to derive r_b from
         cs = replace(cs, r_b=_anchor(ir, cal, p)[1])
+    learn = p["streak_learned"] and p["split_merged"]
+    ratio = 1.0
+    if learn:
+        ratio = learned_streak_ratio(cs.streaks, p["streak_quantile"], p["streak_min_samples"])
     det = detect_frame(
-        ir, cs.w, cs.r_b if cs.r_b > 0 else 2.0, cs.history, p, cs.markers_saturate, cs.previous
+        ir,
+        cs.w,
+        cs.r_b if cs.r_b > 0 else 2.0,
+        cs.history,
+        p,
+        cs.markers_saturate,
+        cs.previous,
+        ratio,
+        learn and cs.streaks.size < p["streak_window"] and state.frames % p["streak_every"] == 0,
     )
     history = (*cs.history, det.history_entry)[-p["b"] :]
     cams = dict(state.cameras)
     seen = cs.markers_saturate or det.saturated_blobs >= p["saturating_markers"]
-    cams[cam] = replace(cs, history=history, markers_saturate=seen, previous=det.record)
+    streaks = np.concatenate([cs.streaks, det.streaks])[-p["streak_window"] :]
+    cams[cam] = replace(
+        cs, history=history, markers_saturate=seen, previous=det.record, streaks=streaks
+    )
     c = det.blobs
     keep = np.argsort(-c.area, kind="stable")[: p["max_blobs"]]
     keep.sort()

@@ -326,6 +326,126 @@ def test_a_merged_pair_moving_slower_than_its_separation_is_still_split() -> Non
     assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=fast).blobs.count == 5
 
 
+def test_a_pair_moving_along_its_axis_is_split_under_the_cameras_streak_ratio() -> None:
+    # The two PSI seen side-on: 4.2 px apart along u, moving 6 px a frame along u. With an
+    # exposure as long as the frame interval (ratio 1) the blob could be one marker's
+    # streak; a camera whose single markers streak over at most 0.3 of their motion cannot
+    # draw 4.2 px from 6 px of motion.
+    img, truth = scene(4.2)
+    p = detect.PARAMS.resolve({"n": 6, **only("split_merged")})
+    fast = previous_record([*truth[:4], (102.1 - 6.0, 80.2)])
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=fast).blobs.count == 5
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=fast, streak_ratio=0.3)
+    assert det.blobs.count == 6
+    assert nearest(det.centroid, truth).max() < 0.6
+
+
+def test_a_blurred_marker_within_the_cameras_streak_ratio_is_not_split() -> None:
+    img, singles = streak_scene(5.0)
+    p = detect.PARAMS.resolve({"n": 5, **only("split_merged")})
+    # a 5 px streak drawn over 20 px of motion: a quarter of the frame interval
+    moved = previous_record([*singles, (100.0 - 20.0, 80.2)])
+    for ratio in (0.3, 1.0):
+        det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=moved, streak_ratio=ratio)
+        assert det.blobs.count == 5, ratio
+    # the same streak from 8 px of motion is longer than 0.3 of it: two markers
+    near = previous_record([*singles, (100.0 - 8.0, 80.2)])
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=near, streak_ratio=0.3)
+    assert det.blobs.count == 6
+
+
+def streak_sample(img: np.ndarray, previous: np.ndarray, n: int = 5) -> np.ndarray:
+    p = detect.PARAMS.resolve({"n": n, **only("split_merged")})
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=previous, sample_streaks=True)
+    return det.streaks
+
+
+STILL = [(20.3, 20.6), (60.7, 25.2), (120.1, 30.4), (40.5, 90.9)]
+
+
+def streaked(u: float, length: float, extra: list[tuple[float, float]] = ()) -> np.ndarray:
+    """The four ``STILL`` markers (radius 2.5 px), markers at ``extra``, and a smaller one
+    (radius 2 px, farther away) streaked over ``length`` px along u, centred at (u, 60.3)."""
+    img = frame(noise=10.0, seed=int(u) % 7)
+    for a, b in [*STILL, *extra]:
+        disc(img, a, b, 2.5, 60000.0)
+    for k in range(12):
+        disc(img, u - length / 2 + length * k / 11, 60.3, 2.0, 30000.0)
+    return u16(img)
+
+
+def test_streak_ratios_measure_an_isolated_moving_marker() -> None:
+    # a 3 px streak along u after 12 px of motion along u: the exposure is a quarter of a
+    # frame (the pixel grid resolves the streak's length to about a pixel)
+    img = streaked(100.0, 3.0)
+    got = streak_sample(img, previous_record([*STILL, (88.0, 60.3)]))
+    assert got.shape == (1,)
+    assert 0.15 <= got[0] <= 0.35, got
+    # not seen in the frame before, or moving less than min_motion: no sample
+    assert streak_sample(img, previous_record(STILL)).size == 0
+    assert streak_sample(img, previous_record([*STILL, (98.0, 60.3)])).size == 0
+    # without sample_streaks nothing is measured
+    p = detect.PARAMS.resolve({"n": 5, **only("split_merged")})
+    moved = previous_record([*STILL, (88.0, 60.3)])
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=moved).streaks.size == 0
+
+
+def test_streak_ratios_skip_a_marker_with_a_neighbour_or_of_a_pairs_size() -> None:
+    img, truth = scene(4.2)  # the pair is one blob of about twice a marker's area
+    moved = previous_record([*truth[:4], (102.1 - 15.0, 80.2)])
+    assert streak_sample(img, moved).size == 0
+    crowded = streaked(100.0, 3.0, [(100.0, 68.0)])  # a marker 8 px away
+    near = previous_record([*STILL, (100.0, 68.0), (88.0, 60.3)])
+    assert streak_sample(crowded, near, n=6).size == 0
+    alone = previous_record([*STILL, (100.0, 68.0), (88.0, 60.3)])
+    assert streak_sample(streaked(100.0, 3.0, [(100.0, 78.0)]), alone, n=6).size == 1
+
+
+def test_learned_streak_ratio_is_a_quantile_capped_at_one() -> None:
+    samples = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
+    assert detect.learned_streak_ratio(samples, 0.5, 5) == pytest.approx(0.3)
+    assert detect.learned_streak_ratio(samples, 1.0, 5) == pytest.approx(0.5)
+    assert detect.learned_streak_ratio(samples, 0.5, 6) == 1.0  # too few yet
+    assert detect.learned_streak_ratio(np.array([0.9, 1.4, 2.0]), 0.9, 3) == 1.0
+
+
+def moving_scene(streak_at: float, pair_at: float | None) -> np.ndarray:
+    """:func:`streaked` with a 3 px streak at u = ``streak_at`` and (optionally) a pair
+    4.2 px apart along u centred at (``pair_at``, 100.2)."""
+    pair = [] if pair_at is None else [(pair_at - 2.1, 100.2), (pair_at + 2.1, 100.2)]
+    return streaked(streak_at, 3.0, pair)
+
+
+def test_the_stage_learns_the_streak_ratio_and_keeps_it_for_the_camera() -> None:
+    # One marker crosses the view at 12 px a frame with a 3 px streak (ratio about 0.25);
+    # once three samples are in, a pair moving 6 px a frame along its own axis is split.
+    opts = {"n": 6, **only("split_merged"), "default_w": 12000.0, "default_r_b": 2.5}
+    learn = {"streak_learned": True, "streak_min_samples": 3, "streak_every": 1}
+    p = detect.PARAMS.resolve({**opts, **learn})
+
+    def last_count(state, frames, trial="walk-01"):
+        for i, img in enumerate(frames):
+            state, (out,) = detect.step(state, {"clean": clean_msg(img, trial, i)})
+        return state, len(out.centroid)
+
+    walk = [moving_scene(30.0 + 12.0 * i, None) for i in range(5)]
+    pair = [moving_scene(100.0, 60.0), moving_scene(112.0, 66.0)]
+    learned, n = last_count(detect.init(p), walk + pair)
+    assert n == 7
+    cam = learned.cameras["cam0"]
+    assert cam.streaks.size >= 3
+    assert detect.learned_streak_ratio(cam.streaks, 0.9, 3) < 0.5
+    # a fresh camera has no ratio yet: the pair reads as one streaked marker
+    assert last_count(detect.init(p), pair)[1] == 6
+    # the ratio is the camera's: a new trial keeps it
+    assert last_count(learned, pair, trial="walk-02")[1] == 7
+    # off (the default): nothing is sampled and the bound stays the whole motion
+    off = detect.PARAMS.resolve({**opts, **learn, "streak_learned": False})
+    state, n = last_count(detect.init(off), walk + pair)
+    assert n == 6
+    assert state.cameras["cam0"].streaks.size == 0
+
+
 def line_scene(length: float) -> tuple[np.ndarray, list[tuple[float, float]]]:
     """Four single markers and a thin bright line ``length`` px long along u (a glint on
     an edge, a flying-pixel seam): 1.5-3 times a marker's area, elongated, but far longer

@@ -332,6 +332,7 @@ def mid_exposure_pixels(frames: list, lag: float) -> list[np.ndarray]:
 ABLATIONS: dict[str, dict[str, bool]] = {
     "refine": {"refine": True},
     "nosplit": dict.fromkeys(SPLITTERS, False),
+    "streak": {"streak_learned": True},
     **{
         name: {s: s == key for s in SPLITTERS}
         for name, key in (
