@@ -1570,7 +1570,7 @@ def detect_frame(
     if previous.shape[0] and (p["split_tracked"] or sample_streaks):
         match = match_previous(previous, comps.centroid, TRACK_GATE_PX)
     streaks = np.zeros(0)
-    if sample_streaks and p["split_merged"] and match is not None:
+    if sample_streaks and match is not None:
         streaks = streak_ratios(roi, comps, previous, match[0])
     splitters = []
     if p["split_tracked"]:
@@ -1682,7 +1682,9 @@ def step(state: DetectState, inputs: Inputs) -> tuple[DetectState, list]:
     history = (*cs.history, det.history_entry)[-p["b"] :]
     cams = dict(state.cameras)
     seen = cs.markers_saturate or det.saturated_blobs >= p["saturating_markers"]
-    streaks = np.concatenate([cs.streaks, det.streaks])[-p["streak_window"] :]
+    streaks = cs.streaks
+    if det.streaks.size:
+        streaks = np.concatenate([streaks, det.streaks])[-p["streak_window"] :]
     cams[cam] = replace(
         cs, history=history, markers_saturate=seen, previous=det.record, streaks=streaks
     )
