@@ -40,9 +40,9 @@ Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
    model's, refined online from walking frames, see ``_learn_foot``), one depth for the
    foot, the wand bounds of TIB (side-independent, ``_interval``), the triangle foot model
    (ANK inside triangle TIB-TOE-HEE) and the tracks, under hard rules (toe half a foot
-   ahead of the heel, tibia above ankle, heel and toe not far above the ankle, heel and
-   toe within the tibia wand's reach: its highest place on the shank plus the ankle's
-   distance to them); the best
+   ahead of the heel, or below it in a steeply pitched foot, ``toe_ahead``; tibia above
+   ankle, heel and toe not far above the ankle, heel and toe within the tibia wand's
+   reach: its highest place on the shank plus the ankle's distance to them); the best
    ones are completed with the far heel, toe and tibia (the far tibia only absorbs its
    blob; rigid foot, deeper than the near foot, by ``FAR_NEW_DEPTH`` without a fresh
    track; a lone far blob only on last frame's track, and not when the other site's
@@ -687,6 +687,43 @@ def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np
     sig = (20.0 + 0.2 * d0) if loose else (10.0 + 0.1 * d0)
     d = np.hypot(pa[:, 0] - pb[:, 0], pa[:, 2] - pb[:, 2])
     return ((d - d0) / sig) ** 2
+
+
+# The toe-ahead rule of the foot search (toe_ahead): the toe at least TOE_AHEAD of the
+# foot length ahead of the heel (any foot pitched less than 60 deg), or, in a foot pitched
+# toe down by 60 to TOE_PITCH_MAX_DEG, at least TOE_STEEP_LENGTH of it from the heel.
+TOE_AHEAD = 0.5
+TOE_PITCH_MAX_DEG = 80.0
+TOE_STEEP_LENGTH = 0.75
+
+
+def toe_ahead(ph: np.ndarray, pt: np.ndarray, foot: float) -> np.ndarray:
+    """Whether toe points can belong to a foot with these heel points (a hard rule of the
+    foot search, steps 7-9).
+
+    The toe lies ``TOE_AHEAD`` of the foot length ahead of the heel, which any foot
+    pitched less than 60 deg satisfies and a tibia marker, above the ankle, does not. In
+    early swing the foot pitches further, toe down (up to 83 deg on the true markers of
+    the twelve walks; btk_PiG_Motion3_FF frame 114: the heel 200 mm above the toe and
+    70 mm behind it; the near foot's four markers went unlabelled for three frames):
+    there the toe may lie less far ahead if it lies below the heel, pitched at most
+    ``TOE_PITCH_MAX_DEG``, and at least ``TOE_STEEP_LENGTH`` of the foot length from it
+    (a blob nearer the heel is no toe at any pitch).
+
+    Parameters
+    ----------
+    ph, pt : (M, 3) heel and toe positions (forward, e, height), mm, oriented floor frame.
+    foot : the heel-to-toe sagittal length, mm.
+
+    Returns
+    -------
+    (M,) bool.
+    """
+    ahead = pt[:, 0] - ph[:, 0]
+    down = ph[:, 2] - pt[:, 2]
+    pitch = np.degrees(np.arctan2(down, ahead))
+    steep = (pitch >= 60.0) & (pitch <= TOE_PITCH_MAX_DEG)
+    return (ahead > TOE_AHEAD * foot) | (steep & (np.hypot(ahead, down) > TOE_STEEP_LENGTH * foot))
 
 
 def _interval(pa: np.ndarray, pb: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -1462,11 +1499,10 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         foot_idx = [MARKER_INDEX[f"{near}_{s}"] for s in NEAR_FOOT]
         hy = _Hyp(fr, foot_idx, cand)
         shank = geo.d("KNE", "ANK")
-        # Hard: the tibia marker above the ankle one.
-        # Even pitched 60 deg, the toe stays half a foot length ahead of the heel (a tibia
-        # marker, above the ankle, does not).
-        reach = 0.5 * geo.d("HEE", "TOE")
-        hy.forbid((2, 3), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
+        # Hard: the tibia marker above the ankle one; the toe ahead of the heel, or below
+        # it in a steeply pitched foot (toe_ahead).
+        foot = geo.d("HEE", "TOE")
+        hy.forbid((2, 3), lambda ph, pt: toe_ahead(ph, pt, foot))
         hy.forbid((0, 1), lambda pt, pa: pt[:, 2] > pa[:, 2] - 20.0)
         # The heel and toe markers never rise far above the ankle one (a plantarflexed
         # foot lifts the heel to about the ankle's level).
@@ -1523,7 +1559,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
             ni = foot_idx[2 + k]
             if _fresh(fr, ni) and not _fresh(fr, i):
                 h2.U[k, :K] += np.where(hy.U[2 + k, :K] < CLAIM_SIG2, MISS_COST, 0.0)
-        h2.forbid((0, 1), lambda ph, pt: pt[:, 0] > ph[:, 0] + reach)
+        h2.forbid((0, 1), lambda ph, pt: toe_ahead(ph, pt, foot))
         for k in (0, 1):
             h2.forbid((2, k), lambda pw, pk: pw[:, 2] > pk[:, 2] + 0.1 * shank)
         h2.add((0, 1), lambda ph, pt: _rigid(ph, pt, geo.d("HEE", "TOE")))

@@ -427,13 +427,19 @@ def test_the_knees_track_keeps_only_its_own_blob_out_of_the_foot_search() -> Non
 def test_a_tibia_wand_placed_high_stays_a_foot_search_candidate() -> None:
     # The same frame with the wand 20 mm above 0.3 H (the foot search's band): a wand that
     # the static pose measured at 398 mm (0.27 H) may rise past 0.3 H in swing; the band
-    # reaches 0.05 H above the measured height.
+    # reaches 0.05 H above the measured height. The ankle is hidden here: raised alone, the
+    # wand lies 363 mm from the ankle, beyond the wand's interval (0.8 of the shank), and
+    # with the steep foot allowed (toe_ahead) that frame reads the ankle's blob as the heel
+    # about as well as the right way, so its foot labels are left out as ambiguous.
     blobs, tracks, geo = _high_wand_frame(458.0)
+    del blobs[7]  # R_ANK; the wand is now blob 7
+    a = _lower(blobs, tracks, {"R_SHO": 1, "R_HIP": 0}, geo, [1495.0, -204.0, 1398.0], "R", 1)
+    assert a[MARKER_INDEX["R_TIB"]] != 7  # the template's wand height: the band is 0.3 H
     offsets = geo.offsets.copy()
     offsets[0, SITES.index("TIB"), 2] = 398.0
     geo = replace(geo, offsets=offsets)
     a = _lower(blobs, tracks, {"R_SHO": 1, "R_HIP": 0}, geo, [1495.0, -204.0, 1398.0], "R", 1)
-    assert a[MARKER_INDEX["R_TIB"]] == 8
+    assert a[MARKER_INDEX["R_TIB"]] == 7
 
 
 def test_a_hidden_near_tibia_wand_does_not_take_the_far_legs_blobs() -> None:
@@ -847,3 +853,67 @@ def test_a_heel_label_the_ankle_could_as_well_take_is_left_out() -> None:
     a = _hidden_heel_frame()
     assert a[MARKER_INDEX["R_HEE"]] != 4
     assert a[MARKER_INDEX["R_TIB"]] == 7
+
+
+def test_toe_ahead_allows_a_steeply_pitched_foot_and_nothing_nearer_the_heel() -> None:
+    foot = 200.0
+    heel = np.zeros((6, 3))
+    toe = np.array(
+        [
+            [120.0, 0.0, 0.0],  # level, 0.6 of the foot ahead
+            [80.0, 0.0, -10.0],  # level, 0.4 ahead: too near
+            [60.0, 0.0, -180.0],  # pitched 72 deg toe down, 0.95 of the foot away
+            [30.0, 0.0, -100.0],  # pitched 73 deg, 0.52 away: too near the heel
+            [20.0, 0.0, -190.0],  # pitched 84 deg: beyond TOE_PITCH_MAX_DEG
+            [60.0, 0.0, 180.0],  # above the heel (a tibia marker)
+        ]
+    )
+    ok = label.toe_ahead(heel, toe, foot)
+    assert ok.tolist() == [True, False, True, False, False, False]
+
+
+def test_near_foot_pitched_steeply_in_early_swing_is_labelled() -> None:
+    # btk_PiG_Motion3_FF, base set-up, frame 114, near side R walking +a: the right foot
+    # just after toe off, its heel 200 mm above its toe and 70 mm behind it (pitched 71 deg,
+    # toe down). The toe-half-a-foot-ahead rule forbade the right reading, and the near
+    # foot's four markers went unlabelled for three frames.
+    blobs = [
+        [3465.0, -133.0, 275.0],  # 0 R_TIB
+        [3360.0, -73.0, 257.0],  # 1 R_HEE
+        [3747.0, -225.0, 1416.0],  # 2 R_SHO
+        [3787.0, -176.0, 844.0],  # 3 R_HIP
+        [3795.0, 41.0, 199.0],  # 4 L_TIB
+        [3429.0, -116.0, 58.0],  # 5 R_TOE
+        [3396.0, -136.0, 216.0],  # 6 R_ANK
+        [3801.0, 46.0, 71.0],  # 7 L_ANK
+        [3787.0, 25.0, 38.0],  # 8 L_HEE
+        [3752.0, -162.0, 460.0],  # 9 R_KNE
+        [4008.0, 42.0, 38.0],  # 10 L_TOE
+        [3770.0, -163.0, 548.0],  # 11 R_THI
+    ]
+    tracks = {
+        "L_HEE": ([3797.0, 33.0, 36.0], [0.0, 7.0, 3.0], 1),
+        "L_TOE": ([3995.0, 23.0, 49.0], [-44.0, -63.0, -3.0], 1),
+        "R_THI": ([3695.0, -169.0, 553.0], [72.0, 1.0, -5.0], 1),
+        "R_KNE": ([3667.0, -161.0, 463.0], [78.0, -3.0, -6.0], 1),
+        "R_TIB": ([3334.0, -128.0, 231.0], [39.0, -8.0, 23.0], 2),
+        "R_ANK": ([3282.0, -124.0, 156.0], [32.0, -10.0, 25.0], 2),
+        "R_HEE": ([3232.0, -59.0, 179.0], [39.0, -4.0, 38.0], 2),
+        "R_TOE": ([3391.0, -88.0, 36.0], [8.0, 17.0, -1.0], 2),
+    }
+    geo = _geometry(
+        1448.0,
+        {
+            ("ANK", "HEE"): 56.0,
+            ("ANK", "TOE"): 176.0,
+            ("HEE", "TOE"): 228.0,
+            ("KNE", "ANK"): 428.0,
+            ("HIP", "KNE"): 395.0,
+        },
+    )
+    cam = [1955.0, -2761.0, 798.0]
+    a = _lower(
+        blobs, tracks, {"R_SHO": 2, "R_HIP": 3}, geo, [3749.0, -227.0, 1413.0], "R", 1, cam=cam
+    )
+    got = {n: int(a[MARKER_INDEX[f"R_{n}"]]) for n in ("TIB", "ANK", "HEE", "TOE")}
+    assert got == {"TIB": 0, "ANK": 6, "HEE": 1, "TOE": 5}
