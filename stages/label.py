@@ -1562,6 +1562,13 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         h2.forbid((0, 1), lambda ph, pt: toe_ahead(ph, pt, foot))
         for k in (0, 1):
             h2.forbid((2, k), lambda pw, pk: pw[:, 2] > pk[:, 2] + 0.1 * shank)
+        # The absorber is a shank marker too, never far below its standing height (as the
+        # near tibia wand): absorbing a blob at foot height, it took the far toe's (or heel's)
+        # blob while the far foot's labels, without tracks of their own, went to the other
+        # foot marker or none, and the far foot went unlabelled through whole swings and
+        # heel strikes (btk_c3dorg_sample04_Matt, base, frames 110-121).
+        far_ank_h = geo.rel_sho("far", "ANK")[2]
+        h2.forbid((2,), lambda pw: pw[:, 2] > far_ank_h + 0.1 * shank)
         h2.add((0, 1), lambda ph, pt: _rigid(ph, pt, geo.d("HEE", "TOE")))
         # Forbidden far completions (inf) can be neither the best nor an alternative.
         T2, c2, pres2 = h2.T[h2.rows], h2.c, h2.present[h2.rows]

@@ -917,3 +917,51 @@ def test_near_foot_pitched_steeply_in_early_swing_is_labelled() -> None:
     )
     got = {n: int(a[MARKER_INDEX[f"R_{n}"]]) for n in ("TIB", "ANK", "HEE", "TOE")}
     assert got == {"TIB": 0, "ANK": 6, "HEE": 1, "TOE": 5}
+
+
+def test_far_tibia_absorber_does_not_take_a_blob_at_foot_height() -> None:
+    # btk_c3dorg_sample04_Matt, base set-up, frame 116, near side R walking +a: the far (L)
+    # foot swings to its heel strike, its heel and toe seen but untracked (the toe's track
+    # 7 frames old). The far tibia wand, which only absorbs its blob, took the far toe's
+    # blob at foot height, the far toe label the heel's, and the ambiguity test then left
+    # the far foot unnamed through frames 110-121, and its heel strike was missed. The
+    # absorber is a shank marker, never far below its standing height.
+    blobs = [
+        [2495.0, -213.0, 1198.0],  # 0 R_SHO
+        [2405.0, -170.0, 638.0],  # 1 R_HIP
+        [2475.0, -107.0, 159.0],  # 2 R_TIB
+        [2813.0, 149.0, 99.0],  # 3 L_TOE
+        [2640.0, -132.0, 481.0],  # 4 R_THI
+        [2417.0, -111.0, 94.0],  # 5 R_ANK
+        [2662.0, 111.0, 39.0],  # 6 L_HEE
+        [2374.0, -66.0, 73.0],  # 7 R_HEE
+        [2513.0, -101.0, 84.0],  # 8 R_TOE
+        [2713.0, -99.0, 381.0],  # 9 R_KNE
+    ]
+    tracks = {
+        "L_TOE": ([2093.0, 30.0, 112.0], [82.0, 7.0, 7.0], 7),
+        "R_HIP": ([2389.0, -170.0, 643.0], [16.0, 2.0, -4.0], 1),
+        "R_THI": ([2626.0, -122.0, 492.0], [15.0, -10.0, -9.0], 1),
+        "R_KNE": ([2701.0, -84.0, 391.0], [0.0, 0.0, 0.0], 1),
+        "R_TIB": ([2472.0, -104.0, 160.0], [3.0, 1.0, -2.0], 1),
+        "R_ANK": ([2416.0, -114.0, 95.0], [1.0, 3.0, -1.0], 1),
+        "R_HEE": ([2372.0, -72.0, 75.0], [-3.0, -36.0, 11.0], 1),
+        "R_TOE": ([2514.0, -98.0, 83.0], [3.0, 12.0, -3.0], 1),
+    }
+    geo = _geometry(
+        1230.0,
+        {
+            ("ANK", "HEE"): 49.0,
+            ("ANK", "TOE"): 101.0,
+            ("HEE", "TOE"): 142.0,
+            ("KNE", "ANK"): 411.0,
+            ("HIP", "KNE"): 410.0,
+        },
+    )
+    cam = [1955.0, -2761.0, 798.0]
+    sho = [2498.0, -212.0, 1199.0]
+    a = _lower(blobs, tracks, {"R_SHO": 0, "R_HIP": 1}, geo, sho, "R", 1, frame=116, cam=cam)
+    assert a[MARKER_INDEX["L_HEE"]] == 6
+    assert a[MARKER_INDEX["L_TOE"]] in (3, -1)
+    near = {n: int(a[MARKER_INDEX[f"R_{n}"]]) for n in ("TIB", "ANK", "HEE", "TOE", "KNE")}
+    assert near == {"TIB": 2, "ANK": 5, "HEE": 7, "TOE": 8, "KNE": 9}
