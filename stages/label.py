@@ -690,9 +690,11 @@ def _rigid(pa: np.ndarray, pb: np.ndarray, d0: float, loose: bool = False) -> np
 
 
 # The toe-ahead rule of the foot search (toe_ahead): the toe at least TOE_AHEAD of the
-# foot length ahead of the heel (any foot pitched less than 60 deg), or, in a foot pitched
-# toe down by 60 to TOE_PITCH_MAX_DEG, at least TOE_STEEP_LENGTH of it from the heel.
+# foot length ahead of the heel (any foot pitched less than TOE_STEEP_DEG), or, in a foot
+# pitched toe down by TOE_STEEP_DEG to TOE_PITCH_MAX_DEG, at least TOE_STEEP_LENGTH of it
+# from the heel.
 TOE_AHEAD = 0.5
+TOE_STEEP_DEG = 60.0
 TOE_PITCH_MAX_DEG = 80.0
 TOE_STEEP_LENGTH = 0.75
 
@@ -702,10 +704,11 @@ def toe_ahead(ph: np.ndarray, pt: np.ndarray, foot: float) -> np.ndarray:
     foot search, steps 7-9).
 
     The toe lies ``TOE_AHEAD`` of the foot length ahead of the heel, which any foot
-    pitched less than 60 deg satisfies and a tibia marker, above the ankle, does not. In
-    early swing the foot pitches further, toe down (up to 83 deg on the true markers of
-    the twelve walks; btk_PiG_Motion3_FF frame 114: the heel 200 mm above the toe and
-    70 mm behind it; the near foot's four markers went unlabelled for three frames):
+    pitched less than ``TOE_STEEP_DEG`` (60 deg) satisfies and a tibia marker, above the
+    ankle, does not. In early swing the foot pitches further, toe down (up to 83 deg on the
+    true markers of the twelve walks; btk_PiG_Motion3_FF on the base set-up, frame 114:
+    the heel 200 mm above the toe and 70 mm behind it, and the near foot's four markers
+    went unlabelled for three frames):
     there the toe may lie less far ahead if it lies below the heel, pitched at most
     ``TOE_PITCH_MAX_DEG``, and at least ``TOE_STEEP_LENGTH`` of the foot length from it
     (a blob nearer the heel is no toe at any pitch).
@@ -722,7 +725,7 @@ def toe_ahead(ph: np.ndarray, pt: np.ndarray, foot: float) -> np.ndarray:
     ahead = pt[:, 0] - ph[:, 0]
     down = ph[:, 2] - pt[:, 2]
     pitch = np.degrees(np.arctan2(down, ahead))
-    steep = (pitch >= 60.0) & (pitch <= TOE_PITCH_MAX_DEG)
+    steep = (pitch >= TOE_STEEP_DEG) & (pitch <= TOE_PITCH_MAX_DEG)
     return (ahead > TOE_AHEAD * foot) | (steep & (np.hypot(ahead, down) > TOE_STEEP_LENGTH * foot))
 
 
