@@ -1528,7 +1528,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # The foot's sagittal lengths.
         for a, b, d0 in ((1, 2, geo.d("ANK", "HEE")), (1, 3, geo.d("ANK", "TOE"))):
             hy.add((a, b), lambda pa, pb, d0=d0: _rigid(pa, pb, d0, False))
-        hy.add((2, 3), lambda pa, pb: _rigid(pa, pb, geo.d("HEE", "TOE"), False))
+        hy.add((2, 3), lambda pa, pb: _rigid(pa, pb, foot, False))
         # One foot's markers lie at about one depth (silhouette depth errors of tens of mm
         # allowed): the far foot is ~100-200 mm deeper.
         for a, b in ((1, 2), (1, 3), (2, 3), (0, 1)):
@@ -1577,7 +1577,7 @@ def _lower(fr: _Frame, geo: Geometry, sho: np.ndarray, H: float, gate: float) ->
         # heel strikes (btk_c3dorg_sample04_Matt, base, frames 110-121).
         far_ank_h = geo.rel_sho("far", "ANK")[2]
         h2.forbid((2,), lambda pw: pw[:, 2] > far_ank_h + 0.1 * shank)
-        h2.add((0, 1), lambda ph, pt: _rigid(ph, pt, geo.d("HEE", "TOE")))
+        h2.add((0, 1), lambda ph, pt: _rigid(ph, pt, foot))
         # Forbidden far completions (inf) can be neither the best nor an alternative.
         T2, c2, pres2 = h2.T[h2.rows], h2.c, h2.present[h2.rows]
         p2 = h2.Qa  # (0 where missing: every use below is masked by pres2)

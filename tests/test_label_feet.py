@@ -867,6 +867,28 @@ def test_a_heel_label_the_ankle_could_as_well_take_is_left_out() -> None:
     assert a[MARKER_INDEX["R_TIB"]] == 7
 
 
+# The camera's centre in the oriented floor frame on the simulator's base set-up (the
+# frames below were captured there).
+BASE_CAM = [1955.0, -2761.0, 798.0]
+
+
+def _walk_geometry(
+    sho_h: float, ank_hee: float, ank_toe: float, hee_toe: float, kne_ank: float, hip_kne: float
+) -> label.Geometry:
+    """The template subject at a walk's shoulder height with its foot, shank and thigh
+    lengths (mm)."""
+    return _geometry(
+        sho_h,
+        {
+            ("ANK", "HEE"): ank_hee,
+            ("ANK", "TOE"): ank_toe,
+            ("HEE", "TOE"): hee_toe,
+            ("KNE", "ANK"): kne_ank,
+            ("HIP", "KNE"): hip_kne,
+        },
+    )
+
+
 def _near_foot(assign: np.ndarray, side: str = "R") -> dict[str, int]:
     """The blob of each near foot marker (TIB, ANK, HEE, TOE) in a (20,) assignment."""
     return {n: int(assign[MARKER_INDEX[f"{side}_{n}"]]) for n in label.NEAR_FOOT}
@@ -918,19 +940,9 @@ def test_near_foot_pitched_steeply_in_early_swing_is_labelled() -> None:
         "R_HEE": ([3232.0, -59.0, 179.0], [39.0, -4.0, 38.0], 2),
         "R_TOE": ([3391.0, -88.0, 36.0], [8.0, 17.0, -1.0], 2),
     }
-    geo = _geometry(
-        1448.0,
-        {
-            ("ANK", "HEE"): 56.0,
-            ("ANK", "TOE"): 176.0,
-            ("HEE", "TOE"): 228.0,
-            ("KNE", "ANK"): 428.0,
-            ("HIP", "KNE"): 395.0,
-        },
-    )
-    cam = [1955.0, -2761.0, 798.0]
+    geo = _walk_geometry(1448.0, 56.0, 176.0, 228.0, 428.0, 395.0)
     a = _lower(
-        blobs, tracks, {"R_SHO": 2, "R_HIP": 3}, geo, [3749.0, -227.0, 1413.0], "R", 1, cam=cam
+        blobs, tracks, {"R_SHO": 2, "R_HIP": 3}, geo, [3749.0, -227.0, 1413.0], "R", 1, cam=BASE_CAM
     )
     assert _near_foot(a) == {"TIB": 0, "ANK": 6, "HEE": 1, "TOE": 5}
 
@@ -964,19 +976,9 @@ def test_far_tibia_absorber_does_not_take_a_blob_at_foot_height() -> None:
         "R_HEE": ([2372.0, -72.0, 75.0], [-3.0, -36.0, 11.0], 1),
         "R_TOE": ([2514.0, -98.0, 83.0], [3.0, 12.0, -3.0], 1),
     }
-    geo = _geometry(
-        1230.0,
-        {
-            ("ANK", "HEE"): 49.0,
-            ("ANK", "TOE"): 101.0,
-            ("HEE", "TOE"): 142.0,
-            ("KNE", "ANK"): 411.0,
-            ("HIP", "KNE"): 410.0,
-        },
-    )
-    cam = [1955.0, -2761.0, 798.0]
+    geo = _walk_geometry(1230.0, 49.0, 101.0, 142.0, 411.0, 410.0)
     sho = [2498.0, -212.0, 1199.0]
-    a = _lower(blobs, tracks, {"R_SHO": 0, "R_HIP": 1}, geo, sho, "R", 1, frame=116, cam=cam)
+    a = _lower(blobs, tracks, {"R_SHO": 0, "R_HIP": 1}, geo, sho, "R", 1, frame=116, cam=BASE_CAM)
     assert a[MARKER_INDEX["L_HEE"]] == 6
     assert a[MARKER_INDEX["L_TOE"]] in (3, -1)
     assert _near_foot(a) == {"TIB": 2, "ANK": 5, "HEE": 7, "TOE": 8}
@@ -1013,19 +1015,9 @@ def test_far_tibia_absorber_leaves_a_far_heel_in_swing_to_its_label() -> None:
         "R_HEE": ([1592.0, -52.0, 38.0], [0.0, -2.0, 1.0], 1),
         "R_TOE": ([1774.0, -71.0, 38.0], [1.0, 7.0, -3.0], 1),
     }
-    geo = _geometry(
-        1246.0,
-        {
-            ("ANK", "HEE"): 55.0,
-            ("ANK", "TOE"): 130.0,
-            ("HEE", "TOE"): 181.0,
-            ("KNE", "ANK"): 376.0,
-            ("HIP", "KNE"): 395.0,
-        },
-    )
-    cam = [1955.0, -2761.0, 798.0]
+    geo = _walk_geometry(1246.0, 55.0, 130.0, 181.0, 376.0, 395.0)
     sho = [1639.0, -169.0, 1241.0]
-    a = _lower(blobs, tracks, {"R_SHO": 1}, geo, sho, "R", 1, frame=66, cam=cam)
+    a = _lower(blobs, tracks, {"R_SHO": 1}, geo, sho, "R", 1, frame=66, cam=BASE_CAM)
     assert a[MARKER_INDEX["L_TOE"]] == 7
     assert a[MARKER_INDEX["L_HEE"]] in (5, -1)
     assert _near_foot(a) == {"TIB": 2, "ANK": 0, "HEE": 3, "TOE": 4}
