@@ -71,11 +71,15 @@ def match_events(
     truth: Sequence[Mapping[str, Any]],
     detected: Sequence[Mapping[str, Any]],
     passes: Sequence[Mapping[str, Any]] = (),
+    unscored: Sequence[Mapping[str, Any]] = (),
 ) -> dict[str, Any]:
     """Match detected events to truth events; errors (s) and miss/false counts per kind.
 
     truth : ``{"time_s", "side", "kind"}`` with kind FS/FO or heel_strike/toe_off and an
-        optional ``"pass"``; detected : results.md events.
+        optional ``"pass"``; detected : results.md events. unscored : true events left out
+        of the score (a foot partly outside the image, :func:`observable_events`): a
+        detection of one (same side and kind, within ``MATCH_S``) is neither matched nor
+        false, since the event did happen; ``set_aside`` counts them.
     """
     kinds = {"FS": "heel_strike", "FO": "toe_off"}
     out: dict[str, Any] = {}
@@ -98,6 +102,17 @@ def match_events(
             else:
                 used.add(bi)
                 errs.append(det[bi]["time_s"] - e["time_s"])
+        aside = {
+            i
+            for i, d in enumerate(det)
+            if i not in used
+            and any(
+                kinds.get(u["kind"], u["kind"]) == kind
+                and u["side"] == d["side"]
+                and abs(u["time_s"] - d["time_s"]) <= MATCH_S
+                for u in unscored
+            )
+        }
         spans = []
         for name in {e.get("pass", "") for e in tr}:
             ts = [e["time_s"] for e in truth if e.get("pass", "") == name]
@@ -106,9 +121,15 @@ def match_events(
         false = sum(
             1
             for i, d in enumerate(det)
-            if i not in used and any(a <= d["time_s"] <= b for a, b in spans)
+            if i not in used and i not in aside and any(a <= d["time_s"] <= b for a, b in spans)
         )
-        out[kind] = {"errors_s": errs, "n_truth": len(tr), "miss": miss, "false": false}
+        out[kind] = {
+            "errors_s": errs,
+            "n_truth": len(tr),
+            "miss": miss,
+            "false": false,
+            "set_aside": len(aside),
+        }
     return out
 
 
@@ -216,7 +237,11 @@ def score_trial(
         ``observable_events`` (:func:`observable_events`).
     t_frames : (F,) s; knee_truth, knee_pig : (F, 2) deg (L, R), NaN outside the passes.
     """
-    ev = match_events(truth_summary.get("observable_events", []), doc["events"])
+    seen = truth_summary.get("observable_events", [])
+    keys = {(e["time_s"], e["side"], e["kind"]) for e in seen}
+    every = truth_summary.get("events", [])
+    unseen = [e for e in every if (e["time_s"], e["side"], e["kind"]) not in keys]
+    ev = match_events(seen, doc["events"], unscored=unseen)
     out: dict[str, Any] = {"events": ev}
     for k, side in enumerate("LR"):
         out[f"knee_rmse_{side}"] = knee_rmse(
@@ -277,7 +302,8 @@ def observable_events(ses: Any, name: str, margin_s: float = 0.1) -> list[dict[s
     """The truth events of a walk whose foot (heel and toe) is in the image around the event.
 
     An event of a foot outside the field of view cannot be detected by any camera method, so
-    it counts neither as a miss nor as a reference for a false detection.
+    it is not scored: not a miss when undetected, and a detection of it (the foot partly in
+    view) is neither a hit nor false (``match_events``'s ``unscored``).
     """
     rec = ses.recordings[name]
     wm = rec.motion
