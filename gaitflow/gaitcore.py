@@ -500,6 +500,112 @@ def local_linear(
     return out
 
 
+def extend_back(
+    frame_index: np.ndarray,
+    pixel: np.ndarray,
+    position: np.ndarray,
+    spare_pixel: Sequence[np.ndarray],
+    spare_position: Sequence[np.ndarray],
+    markers: Sequence[int],
+    in_pass: np.ndarray,
+    max_frames: int = 10,
+    gate_px: float = 6.0,
+    sep_px: float = 8.0,
+    depth_mm: float = 60.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker tracks extended back in time onto blobs the labeller left unnamed.
+
+    A labeller working frame by frame often names a far heel only once it has landed: in
+    its swing the heel's blob was there but ambiguous, and Alg. 6 then sees no descent to
+    time the heel strike on. Once a run of labels exists, the blob it came from is the one
+    that continues it backwards. From the first two samples of each run of ``markers``
+    (consecutive frames), the track is followed back one frame at a time: the predicted
+    pixel continues the last image velocity, and the unnamed blob nearest it is taken when
+
+    - it lies within ``gate_px`` plus half the image speed of the prediction;
+    - no other unnamed blob, and no other marker's own prediction (its last pixel plus its
+      velocity), lies within ``max(2 d, d + sep_px)`` of it (d: its distance), so a foot's
+      markers cannot trade places;
+    - no named marker of that frame is nearer the prediction;
+    - its depth continues the track's depth velocity within ``depth_mm``;
+    - the frame lies in a walking pass (``in_pass``; the labeller knows the direction).
+
+    It stops at the first frame that fails, after ``max_frames`` frames, or at a dropped
+    frame. The runs extended are those of the labels given (not of samples added).
+    Departure: the paper labels frame by frame only.
+
+    Parameters
+    ----------
+    frame_index : (F,) camera frame numbers, increasing.
+    pixel, position : (F, 20, 2) px and (F, 20, 3) mm of the named markers, NaN = missing.
+    spare_pixel, spare_position : F arrays (M_f, 2) px and (M_f, 3) mm of the blobs left
+        unnamed in each frame (the position as the marker would be published there).
+    markers : marker indices to extend. in_pass : (F,) bool.
+
+    Returns
+    -------
+    (pixel, position, added): copies with the samples added, and (F, 20) bool marking them.
+    """
+    pixel = np.array(pixel, dtype=float)
+    position = np.array(position, dtype=float)
+    fi = np.asarray(frame_index, dtype=np.int64)
+    n = len(fi)
+    added = np.zeros(pixel.shape[:2], dtype=bool)
+    if n < 3 or max_frames <= 0:
+        return pixel, position, added
+    named = np.isfinite(pixel).all(axis=2)
+    seen = named.copy()
+    follows = np.zeros(n, dtype=bool)  # frame i is the one right after frame i - 1
+    follows[1:] = np.diff(fi) == 1
+    taken: list[set[int]] = [set() for _ in range(n)]
+    for k in markers:
+        # a run's first two labels; a run extended back stops at the next run's end, so the
+        # anchors do not change as tracks grow
+        first = named[1:-1, k] & named[2:, k] & follows[2:] & ~named[:-2, k]
+        for f in np.flatnonzero(first)[::-1] + 1:
+            cur = int(f)
+            for _ in range(max_frames):
+                g = cur - 1
+                if g < 0 or not follows[cur] or not in_pass[g] or seen[g, k]:
+                    break
+                v = pixel[cur, k] - pixel[cur + 1, k]
+                pred = pixel[cur, k] + v
+                cand = np.asarray(spare_pixel[g], dtype=float).reshape(-1, 2)
+                free = np.array([i for i in range(len(cand)) if i not in taken[g]], dtype=int)
+                if not free.size:
+                    break
+                d = np.hypot(*(cand[free] - pred).T)
+                order = np.argsort(d, kind="stable")
+                d0 = float(d[order[0]])
+                if d0 > gate_px + 0.5 * float(np.hypot(*v)):
+                    break
+                clear = max(2.0 * max(d0, 1.0), d0 + sep_px)
+                if len(order) > 1 and d[order[1]] < clear:
+                    break
+                pick = cand[free[order[0]]]
+                if seen[g].any() and np.hypot(*(pixel[g, seen[g]] - pred).T).min() < d0:
+                    break
+                others = [j for j in np.flatnonzero(seen[cur]) if j != k]
+                if others:
+                    vj = np.where(
+                        seen[cur + 1, others][:, None],
+                        pixel[cur, others] - pixel[cur + 1, others],
+                        0.0,
+                    )
+                    if np.hypot(*(pixel[cur, others] + vj - pick).T).min() < clear:
+                        break
+                p = np.asarray(spare_position[g], dtype=float).reshape(-1, 3)[free[order[0]]]
+                vz = position[cur, k, 2] - position[cur + 1, k, 2]
+                vz = vz if np.isfinite(vz) else 0.0
+                if not (np.isfinite(p).all() and abs(p[2] - position[cur, k, 2] - vz) <= depth_mm):
+                    break
+                pixel[g, k], position[g, k] = pick, p
+                seen[g, k] = added[g, k] = True
+                taken[g].add(int(free[order[0]]))
+                cur = g
+    return pixel, position, added
+
+
 def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) -> np.ndarray:
     """Mark as missing the samples that jump away from their neighbours (a Hampel filter).
 

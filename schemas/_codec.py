@@ -62,9 +62,25 @@ class Header:
         return {k: getattr(self, k) for k in HEADER_KEYS}
 
 
-def array_field(dtype: str, shape: tuple[int | None, ...], meaning: str = "") -> Any:
-    """Declare an array field: numpy dtype name and shape (None = free axis length)."""
-    return field(metadata={"array": (np.dtype(dtype).str, tuple(shape)), "meaning": meaning})
+def array_field(
+    dtype: str, shape: tuple[int | None, ...], meaning: str = "", optional: bool = False
+) -> Any:
+    """Declare an array field: numpy dtype name and shape (None = free axis length).
+
+    ``optional``: an array added to a stream after its version was published. Messages
+    without it (older recordings) still decode; the field is then empty (length 0 along
+    every free axis), so it needs a free axis.
+    """
+    meta = {"array": (np.dtype(dtype).str, tuple(shape)), "meaning": meaning}
+    if not optional:
+        return field(metadata=meta)
+    if None not in shape:
+        raise ValueError(f"optional array field needs a free axis, not shape {shape!r}")
+    empty = tuple(0 if n is None else n for n in shape)
+    return field(
+        default_factory=lambda: np.zeros(empty, dtype=dtype),
+        metadata={**meta, "optional": True},
+    )
 
 
 def value_field(
@@ -371,6 +387,8 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
     for f in _fields(cls):
         if "array" in f.metadata:
             if f.name not in arrays:
+                if f.metadata.get("optional"):
+                    continue  # added later: an older message reads as empty
                 raise SchemaError(stream, f.name, "missing array")
             a = arrays[f.name]
             if plan is None:
@@ -429,6 +447,7 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
                 "dtype": dtype,
                 "shape": [s if s is not None else "*" for s in shape],
                 "description": f.metadata.get("meaning", ""),
+                **({"optional": True} if f.metadata.get("optional") else {}),
             }
         else:
             names = {

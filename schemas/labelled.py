@@ -1,7 +1,8 @@
 """Stream ``labelled``: named markers from Alg. 5 (label's output).
 
 Axis 0 follows ``gaitflow.markers.MARKER_NAMES`` (20 markers). NaN = not seen this frame.
-Positions are camera-space mm taken under each marker's own cluster mode.
+Positions are camera-space mm taken under each marker's own cluster mode. ``spare_pixel``
+and ``spare_heel`` (M, ...) are the blobs no marker was named on, M varying per frame.
 """
 
 from __future__ import annotations
@@ -25,3 +26,15 @@ class LabelledMarkers(Message):
     blob: np.ndarray = array_field("int32", (20,), "index into the frame's blobs, -1 = none")
     direction: int = value_field(int, 0, "+1 walking toward +u, -1 toward -u, 0 unknown")
     near_side: str = value_field(str, "", "side facing the camera: L, R or empty")
+    # The frame's blobs no marker was named on, for the gait stage's heel extension. Added
+    # after version 1 was published: messages without them read as empty.
+    spare_pixel: np.ndarray = array_field(
+        "float64", (None, 2), "(u, v) px of the blobs left unnamed", optional=True
+    )
+    spare_heel: np.ndarray = array_field(
+        "float64",
+        (None, 3),
+        "camera-space mm of those blobs as label would publish a heel there (the heel's"
+        " cluster mode, at the surface point with heel_side_on); NaN = no layer",
+        optional=True,
+    )

@@ -11,6 +11,10 @@ trial, or ``finish``).
 
 Per trial (algorithms.md sections 3.6 and 5, see ``gaitflow.gaitcore``):
 
+0. each heel's runs of labels extended back in time onto the blobs label left unnamed
+   (``LabelledMarkers.spare_pixel`` and ``spare_heel``), at most ``heel_extend_frames``
+   frames, where one blob alone continues the track (:func:`gaitflow.gaitcore.extend_back`):
+   label often names a far heel only once it has landed, and Alg. 6 needs its descent;
 1. times from the capture clock (s from the trial's first frame, frame drops stay gaps);
    a heel or toe sample far from its neighbours' median is dropped (``foot_outlier_mm``,
    given for 30 fps and scaled by (30/fps)^2 below: ``gaitcore.outlier_bound``),
@@ -213,6 +217,44 @@ PARAMS = ParamSet(
             "a stance this close to the other foot's overlapping stance is a mislabel (0 = off)",
             0.0,
         ),
+        Param(
+            "heel_extend_frames",
+            int,
+            10,
+            "frames",
+            "a heel's run of labels is extended back onto the blobs label left unnamed for at"
+            " most this many frames, so its descent to a heel strike is seen (0 = off)",
+            0,
+            60,
+        ),
+        Param(
+            "extend_gate_px",
+            float,
+            6.0,
+            "px",
+            "heel extension: the blob lies within this (plus half the image speed) of the"
+            " heel's predicted pixel",
+            0.5,
+            50.0,
+        ),
+        Param(
+            "extend_sep_px",
+            float,
+            8.0,
+            "px",
+            "heel extension: no other blob or marker prediction within this beyond its distance",
+            0.0,
+            50.0,
+        ),
+        Param(
+            "extend_depth_mm",
+            float,
+            60.0,
+            "mm",
+            "heel extension: the blob's depth continues the heel's depth velocity within this",
+            1.0,
+            500.0,
+        ),
         Param("min_pass_s", float, 0.6, "s", "shortest walking pass", 0.1),
         Param("min_speed_mm_s", float, 150.0, "mm/s", "slower than this is not walking", 1.0),
         Param(
@@ -259,6 +301,7 @@ TRUNK = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("SHO", "ASI", "PSI", "
 KNEE_MARKERS = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HIP", "KNE", "ANK")]
 FOOT_MARKERS = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HEE", "TOE")]
 ANKLE_MARKERS = [MARKER_INDEX[f"{s}_ANK"] for s in "LR"]
+HEEL_MARKERS = [MARKER_INDEX[f"{s}_HEE"] for s in "LR"]
 # the wrong-layer test on depth (``depth_outlier_mm``) leaves heel, toe and ankle alone:
 # heel and toe depths scatter on the shoe's silhouette, and replacing them moved gait
 # events (two more heel strikes of 55 missed on the bundled walks) without a gain; the
@@ -283,6 +326,9 @@ class FrameRec:
     # a document over the frames), for the time ``record_t`` (checked when used)
     record: Mapping[str, Any] | None = None
     record_t: float = float("nan")
+    # the blobs label left unnamed: (M, 2) px and (M, 3) mm where a heel would be published
+    spare_pixel: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    spare_heel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 # What a clinician does about a calibration that is not Done (results' warnings).
@@ -501,6 +547,20 @@ def analyse(
     idx, t, fps = _times(frames)
     warnings: list[str] = []
     pos = np.stack([f.position for f in frames]) if frames else np.zeros((0, 20, 3))
+    if p["heel_extend_frames"] > 0 and len(frames) >= 3:
+        _, pos, _ = gc.extend_back(
+            idx,
+            np.stack([f.pixel for f in frames]),
+            pos,
+            [f.spare_pixel for f in frames],
+            [f.spare_heel for f in frames],
+            HEEL_MARKERS,
+            np.array([f.direction != 0 for f in frames], dtype=bool),
+            p["heel_extend_frames"],
+            p["extend_gate_px"],
+            p["extend_sep_px"],
+            p["extend_depth_mm"],
+        )
     # a heel or toe label given for a frame or two to another foot marker (the planted
     # heel of the other foot, say) makes a false contact and a gross step; the bound is
     # far above what a foot's own motion departs from its neighbours' median (heel strike
@@ -801,7 +861,7 @@ def _with_record(rec: FrameRec, first: Header) -> FrameRec:
     t0 = np.int64(first.capture_ns) - first.frame * NOMINAL_PERIOD_S * 1e9
     t = float((np.int64(rec.header.capture_ns) - t0) / 1e9)
     record = frame_record(rec.header.frame, t, rec.position, rec.pixel)
-    return FrameRec(rec.header, rec.position, rec.pixel, rec.direction, rec.near_side, record, t)
+    return dataclasses.replace(rec, record=record, record_t=t)
 
 
 def _frame_records(frames: Sequence[FrameRec], a: TrialAnalysis) -> list[Mapping[str, Any]]:
@@ -931,6 +991,8 @@ def step(state: GaitState, inputs: Inputs) -> tuple[GaitState, list[Message]]:
         np.array(msg.pixel, dtype=float),
         int(msg.direction),
         str(msg.near_side),
+        spare_pixel=np.array(msg.spare_pixel, dtype=float).reshape(-1, 2),
+        spare_heel=np.array(msg.spare_heel, dtype=float).reshape(-1, 3),
     )
     rec = _with_record(rec, state.frames[0].header if state.frames else h)
     # live events found after the previous frame go out with this one

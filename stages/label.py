@@ -3,7 +3,9 @@
 Input: ``markers`` (:class:`Markers3D`) of the walking trials, with the ``calibration``
 record and the ``model`` (:class:`SubjectModel`) as side inputs. Output: ``labelled``
 (:class:`LabelledMarkers`), the 20 named markers, each position taken under the marker's
-own Alg. 3 cluster mode (``gaitflow.markers.cluster_mode``).
+own Alg. 3 cluster mode (``gaitflow.markers.cluster_mode``), and the blobs left unnamed
+(``spare_pixel``, and ``spare_heel``: where a heel on each would be published), which the
+gait stage's heel extension may take.
 
 Per frame (Alg. 5, read in 3D; see docs/readme/labelling.md):
 
@@ -250,7 +252,8 @@ PARAMS = ParamSet(
 
 DEFAULT_FPS = 30.0  # Kinect v2, when neither the parameter nor the session says
 NEAR_FOOT = ("TIB", "ANK", "HEE", "TOE")
-HEELS = np.isin(np.arange(20), [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]])
+HEEL_SITES = [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]]
+HEELS = np.isin(np.arange(20), HEEL_SITES)
 # Segments whose measured length is checked against the stature-scaled template, and the
 # relative deviation beyond which the template's length is used instead.
 SEGMENTS = (("HIP", "KNE"), ("KNE", "ANK"), ("ANK", "HEE"), ("ANK", "TOE"), ("HEE", "TOE"))
@@ -627,6 +630,7 @@ MODE_OF = np.array(
 
 # Each marker's own cluster mode (the output's).
 OWN_MODE = np.array([CLUSTER_MODES.index(cluster_mode(n)) for n in MARKER_NAMES])
+HEEL_MODE = int(OWN_MODE[MARKER_INDEX["L_HEE"]])  # both heels share it
 
 
 def _fresh(fr: _Frame, idx: int) -> bool:
@@ -2187,6 +2191,13 @@ def _output(
     seen = np.full(20, -(10**9)) if prev is None else prev[1].copy()
     zs[ii] = position[ii, 2]
     seen[ii] = frame
+    # the blobs left unnamed (a merged ankle not published still names its blob), with
+    # where a heel on each would be published: the gait stage may extend a heel's track
+    # back onto them (its heel extension)
+    spare = np.setdiff1d(np.arange(len(cen)), b)
+    spare_heel = pos[spare, HEEL_MODE]
+    if side_on is not None and side_on[HEEL_SITES].any():
+        spare_heel = surface_point(spare_heel, mk.surface_offset_mm)
     msg = LabelledMarkers.follow(
         mk.header,
         position=position,
@@ -2194,6 +2205,8 @@ def _output(
         blob=published.astype(np.int32),
         direction=int(direction),
         near_side=near,
+        spare_pixel=cen[spare],
+        spare_heel=spare_heel,
     )
     return msg, (zs, seen)
 

@@ -183,3 +183,26 @@ def test_a_subject_standing_after_walking_gets_no_labels(subject: SubjectModel) 
         assert not np.isfinite(lab.position).any(), MARKER_NAMES[
             int(np.flatnonzero(np.isfinite(lab.position).all(axis=1))[0])
         ]
+
+
+def test_the_blobs_left_unnamed_go_out_as_spares_with_their_heel_position(
+    subject: SubjectModel,
+) -> None:
+    walk = synthetic_walk(seed=12)
+    # locate's offset of a marker centre towards the camera, which heels do not get
+    frames = [dataclasses.replace(f, surface_offset_mm=14.0) for f in walk.frames]
+    walk = dataclasses.replace(walk, frames=frames)
+    labs = _run(walk, subject)
+    heel_mode = label.OWN_MODE[MARKER_INDEX["R_HEE"]]
+    n_spare = 0
+    for f, lab in zip(walk.frames, labs, strict=True):
+        cen = np.asarray(f.centroid, dtype=float).reshape(-1, 2)
+        rest = np.setdiff1d(np.arange(len(cen)), lab.blob[lab.blob >= 0])
+        np.testing.assert_array_equal(lab.spare_pixel, cen[rest])
+        pos = label.fill_modes(np.asarray(f.position).reshape(-1, 3, 3))[rest, heel_mode]
+        # heels are published at the surface point (heel_side_on): so are the spares
+        want = label.surface_point(pos, f.surface_offset_mm)
+        np.testing.assert_allclose(lab.spare_heel, want)
+        n_spare += len(rest)
+    # the walk's stray reflectors (truth -1) are never named: they are spares
+    assert n_spare >= sum(int(np.sum(np.asarray(ids) < 0)) for ids in walk.truth) > 0

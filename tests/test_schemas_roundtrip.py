@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from gaitflow.schemas import STREAMS, Header, Message, decode, decode_any, json_schema
 from gaitflow.schemas import messages_equal as equal
+from gaitflow.schemas._codec import array_field
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -358,19 +359,53 @@ def test_wrong_array_descriptors_are_rejected(name: str, field: str, case: str, 
     assert (ei.value.stream, ei.value.field) == (name, field), ei.value
 
 
+def _without_array(field: str) -> Any:
+    """A ``_repack`` edit that removes one array (its descriptor and its bytes)."""
+
+    def edit(parts: list[Any]) -> None:
+        i = [d[0] for d in parts[2]].index(field)
+        del parts[2][i]
+        del parts[3 + i]
+
+    return edit
+
+
 @pytest.mark.parametrize("name", [n for n in ALL if _array_fields(STREAMS[n])])
 def test_missing_array_is_rejected(name: str) -> None:
     cls = STREAMS[name]
     first = _array_fields(cls)[0].name
-
-    def edit(parts: list[Any]) -> None:
-        i = [d[0] for d in parts[2]].index(first)
-        del parts[2][i]
-        del parts[3 + i]
-
     with pytest.raises(SchemaError) as ei:
-        decode(cls, _repack(_example(cls).encode(), edit))
+        decode(cls, _repack(_example(cls).encode(), _without_array(first)))
     assert (ei.value.stream, ei.value.field) == (name, first)
+
+
+def _optional_arrays(cls: type[Message]) -> list[str]:
+    return [f.name for f in _array_fields(cls) if f.metadata.get("optional")]
+
+
+@pytest.mark.parametrize(
+    ("name", "field"), [(n, f) for n in ALL for f in _optional_arrays(STREAMS[n])]
+)
+def test_an_array_added_after_the_version_reads_as_empty_when_absent(name: str, field: str) -> None:
+    cls = STREAMS[name]
+    msg = _example(cls)
+    got = decode(cls, _repack(msg.encode(), _without_array(field)))
+    dtype, shape = next(f for f in _array_fields(cls) if f.name == field).metadata["array"]
+    a = getattr(got, field)
+    assert a.dtype.str == dtype and a.shape == tuple(0 if n is None else n for n in shape)
+    # the other fields are read as sent
+    for f in _array_fields(cls):
+        if f.name != field:
+            np.testing.assert_array_equal(getattr(got, f.name), getattr(msg, f.name))
+
+
+def test_labelled_carries_the_arrays_added_after_its_version() -> None:
+    assert _optional_arrays(STREAMS["labelled"]) == ["spare_pixel", "spare_heel"]
+
+
+def test_an_optional_array_needs_a_free_axis() -> None:
+    with pytest.raises(ValueError, match="free axis"):
+        array_field("float64", (20, 3), optional=True)
 
 
 def _required_values(cls: type[Message]) -> list[str]:
