@@ -527,7 +527,7 @@ def extend_back(
       velocity), lies within ``max(2 d, d + sep_px)`` of it (d: its distance), so a foot's
       markers cannot trade places;
     - no named marker of that frame is nearer the prediction;
-    - its depth continues the track's depth velocity within ``depth_mm``;
+    - its depth lies within ``depth_mm`` of the track's last depth;
     - the frame lies in a walking pass (``in_pass``; the labeller knows the direction).
 
     It stops at the first frame that fails, after ``max_frames`` frames, or at a dropped
@@ -595,9 +595,9 @@ def extend_back(
                     if np.hypot(*(pixel[cur, others] + vj - pick).T).min() < clear:
                         break
                 p = np.asarray(spare_position[g], dtype=float).reshape(-1, 3)[free[order[0]]]
-                vz = position[cur, k, 2] - position[cur + 1, k, 2]
-                vz = vz if np.isfinite(vz) else 0.0
-                if not (np.isfinite(p).all() and abs(p[2] - position[cur, k, 2] - vz) <= depth_mm):
+                # the last depth, not its velocity: walking across the view a heel's depth
+                # hardly moves, and the difference of two silhouette depths is mostly noise
+                if not (np.isfinite(p).all() and abs(p[2] - position[cur, k, 2]) <= depth_mm):
                     break
                 pixel[g, k], position[g, k] = pick, p
                 seen[g, k] = added[g, k] = True

@@ -251,7 +251,7 @@ PARAMS = ParamSet(
             float,
             60.0,
             "mm",
-            "heel extension: the blob's depth continues the heel's depth velocity within this",
+            "heel extension: the blob's depth lies within this of the heel's last depth",
             1.0,
             500.0,
         ),
