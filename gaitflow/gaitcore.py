@@ -550,11 +550,10 @@ def extend_back(
     position = np.array(position, dtype=float)
     fi = np.asarray(frame_index, dtype=np.int64)
     n = len(fi)
-    added = np.zeros(pixel.shape[:2], dtype=bool)
-    if n < 3 or max_frames <= 0:
-        return pixel, position, added
     named = np.isfinite(pixel).all(axis=2)
-    seen = named.copy()
+    seen = named.copy()  # named, or added here
+    if n < 3 or max_frames <= 0:
+        return pixel, position, seen & ~named
     follows = np.zeros(n, dtype=bool)  # frame i is the one right after frame i - 1
     follows[1:] = np.diff(fi) == 1
     taken: list[set[int]] = [set() for _ in range(n)]
@@ -600,10 +599,10 @@ def extend_back(
                 if not (np.isfinite(p).all() and abs(p[2] - position[cur, k, 2]) <= depth_mm):
                     break
                 pixel[g, k], position[g, k] = pick, p
-                seen[g, k] = added[g, k] = True
+                seen[g, k] = True
                 taken[g].add(int(free[order[0]]))
                 cur = g
-    return pixel, position, added
+    return pixel, position, seen & ~named
 
 
 def reject_outliers(pos: np.ndarray, max_dev_mm: float = 40.0, half: int = 2) -> np.ndarray:

@@ -301,7 +301,6 @@ TRUNK = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("SHO", "ASI", "PSI", "
 KNEE_MARKERS = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HIP", "KNE", "ANK")]
 FOOT_MARKERS = [MARKER_INDEX[f"{s}_{m}"] for s in "LR" for m in ("HEE", "TOE")]
 ANKLE_MARKERS = [MARKER_INDEX[f"{s}_ANK"] for s in "LR"]
-HEEL_MARKERS = [MARKER_INDEX[f"{s}_HEE"] for s in "LR"]
 # the wrong-layer test on depth (``depth_outlier_mm``) leaves heel, toe and ankle alone:
 # heel and toe depths scatter on the shoe's silhouette, and replacing them moved gait
 # events (two more heel strikes of 55 missed on the bundled walks) without a gain; the
@@ -554,7 +553,7 @@ def analyse(
             pos,
             [f.spare_pixel for f in frames],
             [f.spare_heel for f in frames],
-            HEEL_MARKERS,
+            _HEE,
             np.array([f.direction != 0 for f in frames], dtype=bool),
             p["heel_extend_frames"],
             p["extend_gate_px"],

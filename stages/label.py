@@ -252,8 +252,7 @@ PARAMS = ParamSet(
 
 DEFAULT_FPS = 30.0  # Kinect v2, when neither the parameter nor the session says
 NEAR_FOOT = ("TIB", "ANK", "HEE", "TOE")
-HEEL_SITES = [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]]
-HEELS = np.isin(np.arange(20), HEEL_SITES)
+HEELS = np.isin(np.arange(20), [MARKER_INDEX["L_HEE"], MARKER_INDEX["R_HEE"]])
 # Segments whose measured length is checked against the stature-scaled template, and the
 # relative deviation beyond which the template's length is used instead.
 SEGMENTS = (("HIP", "KNE"), ("KNE", "ANK"), ("ANK", "HEE"), ("ANK", "TOE"), ("HEE", "TOE"))
@@ -2196,7 +2195,7 @@ def _output(
     # back onto them (its heel extension)
     spare = np.setdiff1d(np.arange(len(cen)), b)
     spare_heel = pos[spare, HEEL_MODE]
-    if side_on is not None and side_on[HEEL_SITES].any():
+    if side_on is not None and side_on[HEELS].any():
         spare_heel = surface_point(spare_heel, mk.surface_offset_mm)
     msg = LabelledMarkers.follow(
         mk.header,
