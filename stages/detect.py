@@ -923,7 +923,13 @@ def split_merged(
     whatever the exposure, but a pair moving along its own axis by more than its separation
     per frame is left whole too (the two PSI seen side-on, 3 px apart, moving 6 px a frame).
     With ``streak_learned`` the detect stage passes the camera's own ratio, learned from its
-    isolated moving blobs (:func:`streak_ratios`, :func:`learned_streak_ratio`).
+    isolated moving blobs (:func:`streak_ratios`, :func:`learned_streak_ratio`). A blob left
+    unmatched while a blob of the frame before lies within ``gate`` px of it is left whole
+    too: its motion is unknown, not zero. Its previous blob went to a nearer blob of this
+    frame, which is what happens to a fast marker (a toe in swing, 13-21 px a frame on the
+    simulated walks) whose neighbour has moved to where it was, and a fast marker draws the
+    longest streak. A blob with no blob of the frame before within ``gate`` (it has just
+    come into view) is tested as in a trial's first frame.
 
     Returns
     -------
@@ -940,19 +946,21 @@ def split_merged(
         return comps
     cen, rm, rr, k, area = _statistics(comps)
     motion = np.full((comps.count, 2), np.nan)  # displacement since the frame before, px
+    outmatched = np.zeros(comps.count, bool)  # unmatched, with a previous blob within the gate
     if previous is not None and previous.shape[0]:
-        owner, _ = match_previous(previous, cen, gate)
+        owner, dist = match_previous(previous, cen, gate)
         seen = owner >= 0
         motion[seen] = cen[seen] - previous[owner[seen], TRACK_U : TRACK_V + 1]
+        outmatched = ~seen & (dist.min(axis=0) <= gate)
     extra: list[tuple] = []
     split: list[int] = []
     for i in cand.tolist():
         X, val, wt = _blob_pixels(roi, comps, i)
         ev, evec, t, n = _principal(X, wt, cen[i])
-        if ev[1] < elongation * max(ev[0], 1e-9):
+        if ev[1] < elongation * max(ev[0], 1e-9) or outmatched[i]:
             continue
         if np.ptp(t) - np.ptp(n) <= streak_ratio * abs(float(motion[i] @ evec[:, 1])):
-            continue  # one marker's blur streak (a NaN motion compares False: no frame before)
+            continue  # one blur streak (a NaN motion compares False: no blob before near it)
         c = np.array([-math.sqrt(ev[1]), math.sqrt(ev[1])])
         for _ in range(iterations):  # weighted 2-means on the principal-axis coordinate
             g = np.abs(t[:, None] - c[None]).argmin(axis=1)

@@ -314,6 +314,30 @@ def test_a_blurred_marker_is_not_split_when_its_motion_draws_the_streak(length: 
     assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=others).blobs.count == 6
 
 
+def test_a_streak_whose_previous_blob_went_to_a_nearer_blob_is_not_split() -> None:
+    # Three markers in a row along u, moving 12 px a frame: nearest first, the frame
+    # before's second and third markers match this frame's first and second, and its first
+    # lies 36 px from this frame's third, past the gate. The third, blurred into a 7 px
+    # streak, is matched to nothing though blobs of the frame before lie 12 px from it: its
+    # motion is unknown, so its streak is not read as two markers.
+    img, singles = streak_scene(7.0)  # the streak is centred at (100.0, 80.2)
+    ahead = [(76.0, 80.2), (88.0, 80.2)]
+    raw = img.astype(np.float64)
+    for u, v in ahead:
+        disc(raw, u, v, 2.5, 60000.0)
+    img = u16(raw)
+    p = detect.PARAMS.resolve({"n": 7, **only("split_merged")})
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p).blobs.count == 8  # one frame: split
+    before = previous_record([*singles, (64.0, 80.2), *ahead])
+    det = detect.detect_frame(img, 12000.0, 2.5, (), p, previous=before)
+    assert det.blobs.count == 7
+    assert nearest(det.centroid, [(100.0, 80.2)]).min() < 0.3
+    # a blob with no blob of the frame before within the gate has just come into view: it
+    # is tested as in a first frame
+    far = previous_record([*singles, *((u - 40.0, v) for u, v in ahead)])
+    assert detect.detect_frame(img, 12000.0, 2.5, (), p, previous=far).blobs.count == 8
+
+
 def test_a_merged_pair_moving_slower_than_its_separation_is_still_split() -> None:
     img, truth = scene(4.2)  # the pair's centres lie 4.2 px apart along u
     p = detect.PARAMS.resolve({"n": 6, **only("split_merged")})
