@@ -456,17 +456,18 @@ def _window_sums(
     """Sums over the seen samples within ``window_s`` / 2 of each time, from prefix sums
     (O(N)): count n, sum t, sum x, sum t^2, sum t*x, with t counted from t[0].
 
-    t : (N,) s, increasing; x : (N,) with NaN = missing. Returns the five (N,) sums and the
-    (N,) centred times ``tc``.
+    t : (N,) s, increasing; x : (N,) or (N, M) (M series on the same times, each summed on
+    its own, as the same prefix sums down axis 0) with NaN = missing. Returns the five sums,
+    shaped as x, and the centred times ``tc`` (N,) or (N, 1).
     """
     ok = np.isfinite(x)
-    tc = t - t[0]
+    tc = (t - t[0]).reshape(-1, *([1] * (x.ndim - 1)))
     w = ok.astype(float)
     xv = np.where(ok, x, 0.0)
     tw = np.where(ok, tc, 0.0)
 
     def csum(a: np.ndarray) -> np.ndarray:
-        return np.concatenate(([0.0], np.cumsum(a)))
+        return np.concatenate((np.zeros((1, *a.shape[1:])), np.cumsum(a, axis=0)))
 
     lo = np.searchsorted(t, t - window_s / 2 - 1e-9, side="left")
     hi = np.searchsorted(t, t + window_s / 2 + 1e-9, side="right")
@@ -481,15 +482,16 @@ def local_linear(
     """A least-squares line through the seen samples within ``window_s`` / 2 of each time,
     evaluated there (a NaN-aware, first-order Savitzky-Golay smoother on timestamps).
 
-    t : (N,) s; x : (N,) with NaN = missing. Returns (N,), NaN where fewer than 3 samples or
-    a missing input sample (a gap is not filled here, unless ``at_missing``: then the line
-    is evaluated at missing samples too).
+    t : (N,) s; x : (N,), or (N, M) for M series on the same times (each fitted on its
+    own), with NaN = missing. Returns x's shape, NaN where fewer than 3 samples or a missing
+    input sample (a gap is not filled here, unless ``at_missing``: then the line is
+    evaluated at missing samples too).
     """
     t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
     ok = np.isfinite(x)
     if len(t) == 0:
-        return np.zeros(0)
+        return np.zeros(x.shape)
     n0, st, sx, stt, stx, tc = _window_sums(t, x, window_s)
     den = n0 * stt - st * st
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -802,20 +804,20 @@ def smooth_depth(
     if window_s <= 0 or len(t) < 3:
         return pos.copy()
     out = pos.copy()
-    bad = depth_outliers(t, pos[:, :, 2], outlier_window_s, outlier_mm)
-    if outlier_markers is not None:
-        bad[:, np.setdiff1d(np.arange(pos.shape[1]), outlier_markers)] = False
-    for k in range(pos.shape[1]):
-        z = pos[:, k, 2]
-        zs = local_linear(t, np.where(bad[:, k], np.nan, z), window_s, at_missing=True)
-        zs[~bad[:, k] & ~np.isfinite(z)] = np.nan
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(np.isfinite(zs) & (z > 0), zs / z, 1.0)
-        out[:, k] *= scale[:, None]
-        # in the middle of a longer wrong run no seen depth is near enough: the sample is
-        # dropped for the gap filler (the running median in its place was worse: knee
-        # RMSE 1.97 / 4.64 deg against 1.27 / 1.78 on the bundled walks)
-        out[bad[:, k] & ~np.isfinite(zs), k] = np.nan
+    z = pos[:, :, 2]
+    judged = np.arange(pos.shape[1]) if outlier_markers is None else np.asarray(outlier_markers)
+    bad = np.zeros(z.shape, dtype=bool)
+    if judged.size:  # each marker's running median is its own: only the judged are computed
+        bad[:, judged] = depth_outliers(t, z[:, judged], outlier_window_s, outlier_mm)
+    zs = local_linear(t, np.where(bad, np.nan, z), window_s, at_missing=True)  # (F, M)
+    zs[~bad & ~np.isfinite(z)] = np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(np.isfinite(zs) & (z > 0), zs / z, 1.0)
+    out *= scale[:, :, None]
+    # in the middle of a longer wrong run no seen depth is near enough: the sample is
+    # dropped for the gap filler (the running median in its place was worse: knee
+    # RMSE 1.97 / 4.64 deg against 1.27 / 1.78 on the bundled walks)
+    out[bad & ~np.isfinite(zs)] = np.nan
     return out
 
 

@@ -521,6 +521,23 @@ def test_local_linear_keeps_a_line_and_smooths_noise():
     assert np.isnan(gc.local_linear(t, x, 0.3)[5])
 
 
+def test_local_linear_fits_each_column_of_a_2d_series_on_its_own() -> None:
+    # smooth_depth fits all markers' depths in one call: each column must come out exactly
+    # as it would alone, with its own missing samples
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.02, 0.05, 80))
+    x = 2500.0 + rng.normal(0.0, 20.0, (80, 4)) + np.array([0.0, 300.0, -200.0, 50.0])
+    x[rng.random((80, 4)) < 0.2] = np.nan
+    x[:, 3] = np.nan  # a marker never seen
+    for at_missing in (False, True):
+        both = gc.local_linear(t, x, 0.3, at_missing)
+        assert both.shape == x.shape
+        for k in range(4):
+            alone = gc.local_linear(t, x[:, k], 0.3, at_missing)
+            np.testing.assert_array_equal(both[:, k], alone)
+    assert gc.local_linear(np.zeros(0), np.zeros((0, 4)), 0.3).shape == (0, 4)
+
+
 def test_sagittal_knee_flexion_ignores_the_lateral_coordinate() -> None:
     # Thigh and shank in the x-y (sagittal) plane, 30 deg of flexion; the knee marker then
     # pushed 80 mm across the plane (a depth error seen from the side).
