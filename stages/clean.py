@@ -32,6 +32,13 @@ The paper leaves the interference model unspecified [A-0]. Our reading (Rec. of
   centre of similar size; a track with no measurement for ``miss_frames`` frames is
   dropped (the reflector was removed); until then its prediction stays masked (the subject
   walking in front of it).
+- **Levels.** Calibration frames come before the calibration record, so interferers are
+  learned there at the first frame's level and the later trials run at the record's w.
+  A thin highlight (a chrome pole) breaks into other pieces at another level, so each
+  track keeps the level it was learned at and, finding no component at the trial's level,
+  is matched at that one. A component at the trial's level that shares pixels only with
+  components so matched (components above two levels nest) and reaches no further than
+  their boxes is that interferer: it lifts nothing and is masked with them.
 - **Masking and lifting.** Each kept track's box, dilated by ``box_margin``, is zeroed in
   IR and set to 1 in ``mask``. A bright component that overlaps a box but is not that
   track's measurement (a moving marker passing over the reflector) lifts the box for this
@@ -122,6 +129,10 @@ class Track:
     P: np.ndarray = field(repr=False)  # (4, 4)
     misses: int = 0
     source: str = "still"  # still | floor
+    # The bright level it was learned at (0 = none: a seeded floor marker). A long
+    # reflector breaks into other pieces at another level, so a track that finds no
+    # component at the trial's level is matched at this one.
+    level: float = 0.0
 
     @property
     def centre(self) -> np.ndarray:
@@ -161,8 +172,23 @@ def _box(u: float, v: float, r: float) -> np.ndarray:
     return np.array([u, v, s, s])
 
 
-def _new_track(box: np.ndarray, p: Mapping[str, Any], source: str) -> Track:
-    return Track(box.astype(np.float64), np.eye(4) * p["kf_r"], 0, source)
+def _new_track(box: np.ndarray, p: Mapping[str, Any], source: str, level: float = 0.0) -> Track:
+    return Track(box.astype(np.float64), np.eye(4) * p["kf_r"], 0, source, level)
+
+
+def _boxes(comps: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(inclusive u0, v0, u1, v1 boxes; centre u, v and size w, h boxes) of components."""
+    bb = comps.box if comps.box is not None else np.zeros((0, 4))
+    centre = (bb[:, :2] + bb[:, 2:]) / 2
+    return bb, np.concatenate([centre, bb[:, 2:] - bb[:, :2] + 1], axis=1)
+
+
+def _inside_any(bb: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(K,) bool: inclusive pixel box ``bb`` (K, 4) lies within one of the centre/size
+    ``boxes`` (M, 4), with half a pixel's slack (a box's pixels reach its edges)."""
+    lo, hi = boxes[:, :2] - boxes[:, 2:] / 2, boxes[:, :2] + boxes[:, 2:] / 2
+    within = (bb[:, None, :2] >= lo[None]) & (bb[:, None, 2:] <= hi[None])
+    return within.all(axis=2).any(axis=1)
 
 
 def clean_frame(
@@ -183,35 +209,78 @@ def clean_frame(
     """
     d = depth.copy()
     d[(d < p["min_depth"]) | (d > p["max_depth"])] = 0
-    roi = compact_roi(ir, cs.level, 8)
+    # Tracks learned at another level (the empty walkway's, before the calibration record
+    # gave w) that find no component here are matched with the components at that level.
+    levels = {t.level for t in cs.tracks if t.level and t.level != cs.level}
+    roi = compact_roi(ir, min(levels | {cs.level}), 8)
     comps = components(roi, cs.level, p["min_area"], 8, extent=True)
     cen = comps.centroid
     rad = comps.region_radius
     # Boxes (centre u, v, size w, h) of the components: a thin bar gets a thin box.
-    bb = comps.box if comps.box is not None else np.zeros((0, 4))
-    centre = (bb[:, :2] + bb[:, 2:]) / 2
-    boxes = np.concatenate([centre, bb[:, 2:] - bb[:, :2] + 1], axis=1)
+    bb, boxes = _boxes(comps)
     Fm, Hm = np.eye(4), np.eye(4)
     Q, R = np.eye(4) * p["kf_q"], np.eye(4) * p["kf_r"]
     used = np.zeros(comps.count, dtype=bool)
+    # Per other level, made when first needed: components, their boxes, taken, matched.
+    other: dict[float, tuple[Any, np.ndarray, np.ndarray, list[int]]] = {}
     tracks: list[Track] = []
-    lift: list[bool] = []
-    # Tracks first: predict, then take the nearest still component of similar size.
+
+    def nearest(x: np.ndarray, t_boxes: np.ndarray, t_used: np.ndarray) -> int:
+        if not len(t_boxes):
+            return -1
+        dist = np.hypot(t_boxes[:, 0] - x[0], t_boxes[:, 1] - x[1])
+        similar = (t_boxes[:, 2] <= 2.0 * x[2] + 2.0) & (t_boxes[:, 3] <= 2.0 * x[3] + 2.0)
+        ok = (dist <= max(2.0 * p["still_tol"], 1.0)) & similar & ~t_used
+        return int(np.argmin(np.where(ok, dist, np.inf))) if ok.any() else -1
+
+    # Tracks first: predict, then take the nearest still component of similar size, at this
+    # level or else at the level the track was learned at.
     for t in cs.tracks:
         x, P = kf_predict(t.x, t.P, Fm, Q)
-        match = -1
-        if comps.count:
-            dist = np.hypot(boxes[:, 0] - x[0], boxes[:, 1] - x[1])
-            similar = (boxes[:, 2] <= 2.0 * x[2] + 2.0) & (boxes[:, 3] <= 2.0 * x[3] + 2.0)
-            ok = (dist <= max(2.0 * p["still_tol"], 1.0)) & similar & ~used
-            if ok.any():
-                match = int(np.argmin(np.where(ok, dist, np.inf)))
+        t_boxes, t_used = boxes, used
+        match = nearest(x, t_boxes, t_used)
+        if match < 0 and t.level in levels:
+            if t.level not in other:
+                oc = components(roi, t.level, p["min_area"], 8, extent=True)
+                ob = _boxes(oc)[1]
+                other[t.level] = (oc, ob, np.zeros(len(ob), dtype=bool), [])
+            _, t_boxes, t_used, matched = other[t.level]
+            match = nearest(x, t_boxes, t_used)
+            if match >= 0:
+                matched.append(match)
         if match >= 0:
-            used[match] = True
-            x, P = kf_update(x, P, boxes[match], R, Hm)
-            tracks.append(Track(np.asarray(x, dtype=np.float64), P, 0, t.source))
+            t_used[match] = True
+            x, P = kf_update(x, P, t_boxes[match], R, Hm)
+            tracks.append(Track(np.asarray(x, dtype=np.float64), P, 0, t.source, t.level))
         elif t.misses + 1 < p["miss_frames"]:
-            tracks.append(Track(np.asarray(x, dtype=np.float64), P, t.misses + 1, t.source))
+            tracks.append(
+                Track(np.asarray(x, dtype=np.float64), P, t.misses + 1, t.source, t.level)
+            )
+    # A component at this level is an interferer when it shares pixels with components
+    # matched at another level, with no other component there, and reaches no further than
+    # their boxes (components above two levels nest: the higher one's lie inside the lower
+    # one's). So a pole's pieces joined into one, or a reflector's smaller core, lift no
+    # box. A marker that touches the reflector at this level still does: at the track's
+    # level it is a component of its own (or has changed the reflector's, which then
+    # matches no track), or, too dim to show there, it sticks out of the boxes.
+    # There as here, a component inside a bar's box is a piece of the bar.
+    bars = np.array([t.x for t in tracks if max(t.x[2:]) >= 3.0 * min(t.x[2:])]).reshape(-1, 4)
+    holds_other = np.zeros(comps.count, dtype=bool)
+    reach = np.tile([np.inf, np.inf, -np.inf, -np.inf], (comps.count, 1))  # held boxes' hull
+    for oc, _, _, idx in other.values():
+        if comps.count and idx:
+            hit = np.zeros(len(oc.ids), dtype=bool)
+            hit[idx] = True
+            hit |= _inside_any(oc.box, bars)
+            holds_other |= np.isin(comps.ids, comps.labels[np.isin(oc.labels, oc.ids[~hit])])
+            for j in np.flatnonzero(hit):
+                held = np.isin(comps.ids, comps.labels[oc.labels == oc.ids[j]])
+                reach[held, :2] = np.minimum(reach[held, :2], oc.box[j, :2])
+                reach[held, 2:] = np.maximum(reach[held, 2:], oc.box[j, 2:])
+    m = p["box_margin"]
+    explained = ~holds_other & (bb[:, :2] >= reach[:, :2] - m).all(1)
+    explained &= (bb[:, 2:] <= reach[:, 2:] + m).all(1)
+    used |= explained
     # Still candidates: components not explained by a track.
     cands: list[Candidate] = []
     promoted = 0
@@ -228,7 +297,7 @@ def clean_frame(
                 taken[j] = True
                 count, anchor = prev[j].count + 1, prev[j].anchor
         if learn and count >= p["still_frames"] and len(tracks) < p["max_tracks"]:
-            tracks.append(_new_track(boxes[i], p, "still"))
+            tracks.append(_new_track(boxes[i], p, "still", cs.level))
             used[i] = True
             promoted += 1
         elif len(cands) < p["max_candidates"]:
@@ -243,9 +312,9 @@ def clean_frame(
     H, W = ir.shape
     moving = np.flatnonzero(~used)
     lifted = 0
-    m = p["box_margin"]
-    for t in tracks:
-        u, v, bw, bh = t.x
+    # The components explained at another level are masked too: the joined stretches of a
+    # pole lie between its pieces' boxes.
+    for k, (u, v, bw, bh) in enumerate([t.x for t in tracks] + list(boxes[explained])):
         c0, c1 = int(np.floor(u - bw / 2 - m)), int(np.ceil(u + bw / 2 + m)) + 1
         r0, r1 = int(np.floor(v - bh / 2 - m)), int(np.ceil(v + bh / 2 + m)) + 1
         # A component inside a bar's box is a piece of the bar: a long thin reflector (a
@@ -263,9 +332,8 @@ def clean_frame(
             if not inside and bb[i, 2] >= c0 and bb[i, 0] < c1 and bb[i, 3] >= r0 and bb[i, 1] < r1:
                 hit = True
                 break
-        lift.append(hit)
         if hit:
-            lifted += 1
+            lifted += k < len(tracks)
             continue
         c0, c1, r0, r1 = max(c0, 0), min(c1, W), max(r0, 0), min(r1, H)
         if c0 < c1 and r0 < r1:

@@ -128,19 +128,8 @@ def test_calibration_frames_learn_and_publish_nothing() -> None:
     assert out.mask[REFLECTOR].all()  # known from the calibration recording
 
 
-def test_floor_markers_from_calibration_are_masked_from_the_first_frame() -> None:
-    cal = CalibrationRecord(
-        header=CalibrationRecord.make_header("cam0", "calibration", 99, 5, last=True),
-        floor_pixels=np.array([[100.0, 100.0]]),
-        floor_points=np.zeros((1, 3)),
-        floor_plane=np.array([0.0, -1.0, 0.0, 800.0]),
-        start=np.zeros(3),
-        end=np.zeros(3),
-        status="Done",
-        w=20000.0,
-        r_b=2.0,
-        camera={"model": "x"},
-    )
+def test_floor_markers_from_calibration_are_masked_from_the_first_frame(flat_record) -> None:
+    cal = flat_record(20000.0, 2.0, [[100.0, 100.0]], 99, 5, camera={"model": "x"})
     f = raw(0)
     ir = f.ir.copy()
     ir[99:102, 99:102] = 65535
@@ -157,3 +146,79 @@ def test_inconsistent_depth_range_is_rejected_at_start() -> None:
         clean.init(clean.PARAMS.resolve({"min_depth": 5000.0, "max_depth": 4000.0}))
     with pytest.raises(ParameterError, match="still_frames"):
         clean.PARAMS.resolve({"still_frames": 0})
+
+
+def test_interferers_are_matched_at_the_level_they_were_learned_at(flat_record) -> None:
+    # A chrome pole whose highlight dims between bright stretches: at the level the empty
+    # walkway's first frame gives (about 17 000) it is nine pieces, at the calibration
+    # record's w (10 000) one long component. At the walk's level that component matched
+    # none of the pieces' tracks, lifted their boxes and showed the pole.
+    def pole(k: int, trial: str) -> RawFrame:
+        f = raw(k, trial=trial)
+        ir = f.ir.copy()
+        ir[10:98, 60] = 40000
+        ir[16:98:11, 60] = 12000  # the dim rows that part the pieces
+        return RawFrame(header=f.header, ir=ir, depth=f.depth)
+
+    cal = flat_record(10000.0, 2.0, frame=99, capture_ns=5, camera={})
+    st = clean.init(clean.PARAMS.resolve())
+    for k in range(35):
+        st, _ = clean.step(st, {"raw": pole(k, "calibration")})
+    learned = st.cameras["cam0"]
+    assert sum(t.source == "still" for t in learned.tracks) == 10  # nine pieces and REFLECTOR
+    for k in range(40):
+        st, (out,) = clean.step(st, {"raw": pole(k, "walk-01"), "calibration": cal})
+        assert out.mask[10:98, 60].all() and (out.ir[10:98, 60] == 0).all(), k
+        assert out.mask[REFLECTOR].all(), k
+    walk = st.cameras["cam0"]
+    assert walk.level == 10000.0 and walk.candidates == ()  # the joined pole is explained
+    assert {t.level for t in walk.tracks} == {learned.level}  # the level learned at
+
+    def walk_frame(k: int, rows: slice, cols: slice, value: int) -> CleanFrame:
+        nonlocal st
+        f = pole(k, "walk-01")
+        ir = f.ir.copy()
+        ir[rows, cols] = value
+        st, (out,) = clean.step(
+            st, {"raw": RawFrame(header=f.header, ir=ir, depth=f.depth), "calibration": cal}
+        )
+        return out
+
+    # Noise breaks a piece in two at the learned level: both halves lie inside its bar's
+    # box, so they are pieces of it there too, and the pole stays masked.
+    out = walk_frame(39, slice(21, 22), slice(60, 61), 12000)
+    assert out.mask[10:98, 60].all() and out.interferers == 10
+    # A marker too dim for the learned level but above the walk's still lifts a box it
+    # touches: it holds no interferer's component.
+    out = walk_frame(40, slice(25, 28), slice(31, 34), 14000)
+    assert out.mask[REFLECTOR].sum() == 0 and out.ir[26, 32] == 14000
+    assert out.mask[10:98, 60].all()
+    # A marker touching the pole joins its component at both levels; at the learned level
+    # that changed piece matches no track, so the marker lifts the pole's boxes.
+    out = walk_frame(41, slice(50, 53), slice(61, 64), 65535)
+    assert out.ir[51, 62] == 65535 and out.mask[51, 61:64].sum() == 0
+    # A marker too dim to show at the learned level joins the pole at the walk's; it sticks
+    # out of the pieces' boxes, so it lifts them too.
+    out = walk_frame(42, slice(50, 53), slice(61, 64), 14000)
+    assert out.ir[51, 63] == 14000 and out.mask[51, 61:64].sum() == 0
+
+
+def test_a_reflector_learned_below_the_walks_level_stays_masked(flat_record) -> None:
+    # A reflector with a dimmer rim: 4 x 4 px above the empty walkway's level, its 2 x 2
+    # core above the calibration record's w (30 000). At the walk's level the core is a
+    # component of its own, which must not lift the box learned for the whole reflector.
+    def halo(k: int, trial: str) -> RawFrame:
+        f = raw(k, trial=trial)
+        ir = f.ir.copy()
+        ir[60:64, 100:104] = 20000
+        ir[61:63, 101:103] = 65535
+        return RawFrame(header=f.header, ir=ir, depth=f.depth)
+
+    cal = flat_record(30000.0, 2.0, frame=99, capture_ns=5, camera={})
+    st = clean.init(clean.PARAMS.resolve())
+    for k in range(35):
+        st, _ = clean.step(st, {"raw": halo(k, "calibration")})
+    for k in range(40):
+        st, (out,) = clean.step(st, {"raw": halo(k, "walk-01"), "calibration": cal})
+        assert out.mask[60:64, 100:104].all() and out.mask[REFLECTOR].all(), k
+    assert st.cameras["cam0"].candidates == ()

@@ -8,7 +8,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from gaitflow.schemas import Blobs, CalibrationRecord, CleanFrame
+from gaitflow.schemas import Blobs, CleanFrame
 from gaitflow.stages import detect
 
 
@@ -157,19 +157,9 @@ def test_roi_components_match_full_frame(seed: int) -> None:
         assert sorted(c.area.tolist()) == sorted(stats[1:, 4].tolist())
 
 
-def test_calibration_record_sets_w_and_r_b() -> None:
+def test_calibration_record_sets_w_and_r_b(flat_record) -> None:
     ir, _ = markers_and_noise()
-    cal = CalibrationRecord(
-        header=CalibrationRecord.make_header("cam0", "calibration", 9, 0, last=True),
-        floor_pixels=np.zeros((0, 2)),
-        floor_points=np.zeros((0, 3)),
-        floor_plane=np.array([0.0, -1.0, 0.0, 800.0]),
-        start=np.zeros(3),
-        end=np.zeros(3),
-        status="Done",
-        w=2000.0,
-        r_b=2.5,
-    )
+    cal = flat_record(2000.0, frame=9)
     st = detect.init(params())
     st, (out,) = detect.step(st, {"clean": clean_msg(ir), "calibration": cal})
     cs = st.cameras["cam0"]

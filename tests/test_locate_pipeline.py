@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gaitflow.schemas import CalibrationRecord, Markers3D, RawFrame
+from gaitflow.schemas import Markers3D, RawFrame
 from gaitflow.stages.graph import load
 from gaitflow.stages.inline import run_inline
 
@@ -31,24 +31,10 @@ def raw(k: int, trial: str = "walk-01") -> RawFrame:
     )
 
 
-def calibration() -> CalibrationRecord:
-    return CalibrationRecord(
-        header=CalibrationRecord.make_header("cam0", "calibration", 50, 0, last=True),
-        floor_pixels=np.zeros((0, 2)),
-        floor_points=np.zeros((0, 3)),
-        floor_plane=np.array([0.0, -1.0, 0.0, 800.0]),
-        start=np.zeros(3),
-        end=np.zeros(3),
-        status="Done",
-        w=20000.0,
-        r_b=2.5,
-    )
-
-
-def test_graph_runs_clean_detect_locate() -> None:
+def test_graph_runs_clean_detect_locate(flat_record) -> None:
     graph = load()
     # Frames arrive before the calibration record: they are held, then released in order.
-    msgs = [raw(0), raw(1), calibration(), raw(2)]
+    msgs = [raw(0), raw(1), flat_record(20000.0, frame=50), raw(2)]
     out = run_inline(graph, msgs, stages=["clean", "detect", "locate"], params={"detect": {"n": 3}})
     markers = out["markers"]
     assert [m.header.frame for m in markers] == [0, 1, 2]
