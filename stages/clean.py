@@ -183,6 +183,11 @@ def _boxes(comps: Any) -> tuple[np.ndarray, np.ndarray]:
     return bb, np.concatenate([centre, bb[:, 2:] - bb[:, :2] + 1], axis=1)
 
 
+def _is_bar(box: np.ndarray) -> bool:
+    """A centre/size box one side of which is at least three times the other."""
+    return bool(max(box[2], box[3]) >= 3.0 * min(box[2], box[3]))
+
+
 def _inside_any(bb: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """(K,) bool: inclusive pixel box ``bb`` (K, 4) lies within one of the centre/size
     ``boxes`` (M, 4), with half a pixel's slack (a box's pixels reach its edges)."""
@@ -264,7 +269,7 @@ def clean_frame(
     # level it is a component of its own (or has changed the reflector's, which then
     # matches no track), or, too dim to show there, it sticks out of the boxes.
     # There as here, a component inside a bar's box is a piece of the bar.
-    bars = np.array([t.x for t in tracks if max(t.x[2:]) >= 3.0 * min(t.x[2:])]).reshape(-1, 4)
+    bars = np.array([t.x for t in tracks if _is_bar(t.x)]).reshape(-1, 4)
     holds_other = np.zeros(comps.count, dtype=bool)
     reach = np.tile([np.inf, np.inf, -np.inf, -np.inf], (comps.count, 1))  # held boxes' hull
     for oc, _, _, idx in other.values():
@@ -310,29 +315,23 @@ def clean_frame(
     out_ir = ir.copy()
     mask = np.zeros(ir.shape, dtype=np.uint8)
     H, W = ir.shape
-    moving = np.flatnonzero(~used)
+    moving = bb[~used]
     lifted = 0
     # The components explained at another level are masked too: the joined stretches of a
     # pole lie between its pieces' boxes.
-    for k, (u, v, bw, bh) in enumerate([t.x for t in tracks] + list(boxes[explained])):
+    for k, box in enumerate([t.x for t in tracks] + list(boxes[explained])):
+        u, v, bw, bh = box
         c0, c1 = int(np.floor(u - bw / 2 - m)), int(np.ceil(u + bw / 2 + m)) + 1
         r0, r1 = int(np.floor(v - bh / 2 - m)), int(np.ceil(v + bh / 2 + m)) + 1
+        hit = (moving[:, 2] >= c0) & (moving[:, 0] < c1) & (moving[:, 3] >= r0)
+        hit &= moving[:, 1] < r1
         # A component inside a bar's box is a piece of the bar: a long thin reflector (a
         # chrome pole's highlight) half hidden by the passing body shows as short pieces
         # that match no track, and they lifted the whole box, to be taken for markers. Not
         # for a compact box, where a marker passing in front may lie inside it.
-        bar = max(bw, bh) >= 3.0 * min(bw, bh)
-        lo_u, hi_u = u - bw / 2, u + bw / 2  # its pixels, with half a pixel's slack
-        lo_v, hi_v = v - bh / 2, v + bh / 2
-        hit = False
-        for i in moving:
-            inside = bar and (
-                bb[i, 0] >= lo_u and bb[i, 2] <= hi_u and bb[i, 1] >= lo_v and bb[i, 3] <= hi_v
-            )
-            if not inside and bb[i, 2] >= c0 and bb[i, 0] < c1 and bb[i, 3] >= r0 and bb[i, 1] < r1:
-                hit = True
-                break
-        if hit:
+        if _is_bar(box):
+            hit &= ~_inside_any(moving, box[None])
+        if hit.any():
             lifted += k < len(tracks)
             continue
         c0, c1, r0, r1 = max(c0, 0), min(c1, W), max(r0, 0), min(r1, H)
