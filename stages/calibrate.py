@@ -707,7 +707,12 @@ def step(
             found, rej = _new_blobs(ir, st.background_ir, seen, p)
             rejected += rej
             for u, v, r_m, r_r, w_edge in sorted(found):
-                if len(markers) < p["C"]:
+                # A blob on a marker already found is that marker, more of it showing (an
+                # operator who stood still beside it, hiding part of it, has walked away):
+                # floor markers lie far apart, never within each other's ring.
+                if any(np.hypot(u - m.u, v - m.v) < m.r_r + r_r + p["D0"] for m in markers):
+                    rejected += 1
+                elif len(markers) < p["C"]:
                     markers = (*markers, FloorMarker(u, v, r_m, r_r, w_edge))
         bright = ir > _bright_level(ir, p)
         if seen is not None:
