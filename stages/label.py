@@ -1023,7 +1023,9 @@ def label_frame(
             # window before). Not at a pass's first sight: a blob entering
             # the image at its edge moves with its visible part.
             da = _shoulder_move(floor[sho_blob], prev_q, p["sho_reach"] * H)
-            a_frac = float(st.sho_x[0]) / ff.length
+            # Without a walkway (no usable calibration: length 0) nobody is known to be in
+            # its middle.
+            a_frac = float(st.sho_x[0]) / ff.length if ff.length > 0 else float("nan")
             if abs(da) > p["dir_speed"] * dt:
                 direction = 1 if da > 0 else -1
             elif st.sho_lost_direction and MID_WALKWAY[0] < a_frac < MID_WALKWAY[1]:

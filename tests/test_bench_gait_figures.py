@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from gaitflow.bench.gait import TABLE_IV, table_iv_figures
+from gaitflow.bench.gait import TABLE_IV, empty_trials, table_iv_figures
 from gaitflow.cli import main
 
 
@@ -49,3 +49,15 @@ def test_bench_gait_summarises_the_trials_signed_errors_beside_table_iv(
         row = next(r for r in text.splitlines() if r.startswith(f"{key} error %, mean ± SD"))
         assert f"{s[f'{key}_mean_pct']:+.2f} ± {s[f'{key}_sd_pct']:.2f}" in row
         assert f"{mean:.2f} ± {sd:.2f}" in row
+
+
+def test_bench_gait_says_why_a_trial_gave_no_gait_events() -> None:
+    # A set-up whose calibration has no usable floor (``low+far``: the far floor markers
+    # at a grazing angle have no depth) gives empty results; the bench printed a row of
+    # dashes and nothing else.
+    why = "no floor calibration: the calibration record says Replace Markers"
+    per = {"walk-a": {"why_empty": [why]}, "walk-b": {"events": {}}, "walk-c": {"why_empty": []}}
+    assert empty_trials(per) == [
+        f"walk-a: no gait events: {why}",
+        "walk-c: no gait events: no reason given",
+    ]

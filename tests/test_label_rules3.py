@@ -176,6 +176,26 @@ def test_a_track_restarted_near_an_end_without_a_move_labels_only_once_it_walks(
         assert not st.walked and (assign >= 0).any()
 
 
+def test_a_restarted_track_without_a_walkway_is_labelled_without_a_crash() -> None:
+    # A calibration without a usable floor (``low+far``: the far floor markers at a grazing
+    # angle have no depth, Replace Markers) leaves label the level-camera floor frame,
+    # whose walkway has no length. A shoulder track restarted without a move asked where
+    # on the walkway it was (its position over the length): ZeroDivisionError, which
+    # stops the stage. Without a walkway nobody is known to be mid-walkway, so the
+    # restart is handled as one near an end.
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(None, 800.0)
+    assert ff.length == 0.0
+    body = [[1020.0, 2800.0, h] for h in (0.45 * H, 0.55 * H, 0.65 * H)]
+    now = np.array([[1000.0, 2740.0, H], *body])
+    st = label.init(label.PARAMS.resolve({}))
+    st = replace(st, trial="walk-01", frame=99, sho_lost=95, sho_lost_direction=1, prev_q=now)
+    pos = np.repeat(ff.to_camera(now)[:, None, :], 3, axis=1)
+    st, assign = label.label_frame(st, pos, 100, ff, geo)
+    assert st.walked and (assign == -1).all()
+
+
 def test_untracked_far_foot_does_not_take_the_near_heel_and_toe_at_a_pass_start() -> None:
     # HC002D seed 2 frames 25-26 (seed 0: 30-31): a pass's first frame, no tracks; the
     # near foot 40 mm deeper than the standing offsets say (the shoulder's depth error),

@@ -498,6 +498,9 @@ def run(args: argparse.Namespace) -> int:
         sc = score_trial(doc, truth, t, knee, pig)
         sc["labelling_pct"] = label
         sc["seconds"] = time.perf_counter() - t0
+        if not doc.get("events"):
+            # Nothing measured: the results say why (no floor calibration, nobody seen).
+            sc["why_empty"] = list(doc.get("warnings", []))
         per[trial] = sc
         for k in all_err:
             e = sc["events"][k]
@@ -564,6 +567,7 @@ def run(args: argparse.Namespace) -> int:
         cols,
         rows,
     )
+    t1 += "".join(f"\n{line}" for line in empty_trials(per))
     g = GOALS
     srows = [
         [
@@ -626,6 +630,15 @@ def run(args: argparse.Namespace) -> int:
         [t1, t2],
     )
     return 0
+
+
+def empty_trials(per: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """One line per trial that gave no gait events, with the results' own reason."""
+    return [
+        f"{trial}: no gait events: {'; '.join(sc['why_empty']) or 'no reason given'}"
+        for trial, sc in per.items()
+        if "why_empty" in sc
+    ]
 
 
 def _jsonable(x: Any) -> Any:
