@@ -292,23 +292,47 @@ def floor_point(
         return np.full(3, np.nan)
     cols, rows, vals = _ring(depth, u, v, r_r + 2.0, D0)
     if vals.size >= 8:
-        pts = camera.backproject(np.stack([cols, rows], axis=1), vals)
-        keep = np.ones(len(pts), bool)
-        for _ in range(3):  # drop flying pixels and objects standing in the ring
-            if keep.sum() < 8:
-                break
-            plane = fit_plane(pts[keep])
-            res = np.abs(pts @ plane[:3] + plane[3])
-            keep = res < max(3.0 * 1.4826 * float(np.median(res[keep])), 5.0)
-        if keep.sum() >= 8:
-            xy = camera.undistort(np.array([[u, v]]))[0]
-            ray = np.array([xy[0], xy[1], 1.0])
-            denom = float(plane[:3] @ ray)
-            if abs(denom) > 1e-6:
-                t = -(plane[3] - radius) / denom
-                if vals.min() - W <= t <= vals.max() + W:
-                    return ray * t - radius * plane[:3]
+        # Trimmed: flying pixels and objects standing in the ring are dropped.
+        plane = robust_plane(camera.backproject(np.stack([cols, rows], axis=1), vals), 8)
+        if plane is not None:
+            point, t = marker_on_plane(camera, u, v, plane, radius)
+            if vals.min() - W <= t <= vals.max() + W:
+                return point
     return camera.backproject(np.array([[u, v]]), np.array([z0]))[0]
+
+
+def robust_plane(points: np.ndarray, min_points: int, passes: int = 3) -> np.ndarray | None:
+    """A plane through (N, 3) points, refitted ``passes`` times without the outliers.
+
+    A point is an outlier beyond 3 robust sigmas of the residuals (at least 5 mm). None when
+    fewer than ``min_points`` points are left.
+    """
+    keep = np.ones(len(points), bool)
+    plane = None
+    for _ in range(passes):
+        if keep.sum() < min_points:
+            return None
+        plane = fit_plane(points[keep])
+        res = np.abs(points @ plane[:3] + plane[3])
+        keep = res < max(3.0 * 1.4826 * float(np.median(res[keep])), 5.0)
+    return plane if keep.sum() >= min_points else None
+
+
+def marker_on_plane(
+    camera: Camera, u: float, v: float, plane: np.ndarray, radius: float
+) -> tuple[np.ndarray, float]:
+    """(foot point (3,), depth along the ray) of a marker of ``radius`` resting on ``plane``.
+
+    The centroid's ray is cut with the plane lifted by the radius (the sphere's centre) and
+    the point is dropped back onto the plane. NaN where the ray runs parallel to it.
+    """
+    xy = camera.undistort(np.array([[u, v]], dtype=np.float64))[0]
+    ray = np.array([xy[0], xy[1], 1.0])
+    denom = float(plane[:3] @ ray)
+    if abs(denom) <= 1e-6:
+        return np.full(3, np.nan), float("nan")
+    t = -(plane[3] - radius) / denom
+    return ray * t - radius * plane[:3], t
 
 
 def fit_plane(points: np.ndarray) -> np.ndarray:
@@ -532,18 +556,78 @@ def solve(
         ]
     )
     sol = replace(empty, points=points)
-    if not np.isfinite(points).all():
-        bad = [i + 1 for i in range(len(points)) if not np.isfinite(points[i]).all()]
-        return replace(sol, status="Replace Markers", message=f"no floor depth at marker(s) {bad}")
     if not diagonals_cross(pixels):
         return replace(
             sol,
             status="Replace Markers",
             message="the marker quad is not convex: its diagonals do not cross",
         )
-    plane = fit_plane(points)
     order = cyclic_order(pixels)
-    plane = _refine_plane(plane, depth, camera, pixels[order])
+    missing = [i + 1 for i in range(len(points)) if not np.isfinite(points[i]).all()]
+    if missing:
+        found = _markers_on_walkway(points, pixels, pixels[order], depth, camera, p)
+        if found is None:
+            return replace(
+                sol, status="Replace Markers", message=f"no floor depth at marker(s) {missing}"
+            )
+        filled, strip = found
+        sol = _pose(replace(sol, points=filled), strip, depth, camera, p)
+        note = f"; marker(s) {missing} placed on the floor seen inside the quad (no depth there)"
+        return replace(sol, message=sol.message + note)
+    return _pose(sol, pixels[order], depth, camera, p)
+
+
+def _markers_on_walkway(
+    points: np.ndarray,
+    pixels: np.ndarray,
+    quad: np.ndarray,
+    depth: np.ndarray,
+    camera: Camera,
+    p: dict[str, Any],
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Floor points (C, 3) with the markers that have no floor depth placed on the floor.
+
+    ``points`` (C, 3) mm and ``pixels`` (C, 2) px are in placement order, ``quad`` (C, 2)
+    px in cyclic order.
+
+    A camera low and far from the walkway sees the far floor at a grazing angle, where a
+    time-of-flight sensor returns no depth: the far markers' rings are empty. The floor is
+    then the plane through the valid depth pixels of the empty floor from the quad down to
+    the image's bottom edge (the quad's columns), kept only when at least two markers have
+    depth and lie within ``plane_tol_mm`` of it; each marker without depth is placed where
+    its ray meets it (:func:`marker_on_plane`). Returns (points, the strip's polygon (K, 2)
+    px, where the plane is refined), or None when that cannot be done.
+
+    The quad alone is not enough there: it spans a few hundred mm of depth, all of it near
+    the grazing limit, whose last valid pixels lie about 10 mm below the floor, and a plane
+    through it tilted by 1.4 deg (the simulator's ``low+far``; the strip down to the image's
+    edge, 1 to 3.5 m away: 0.001 deg).
+    """
+    have = np.isfinite(points).all(axis=1)
+    if have.sum() < 2:
+        return None
+    below = np.stack([quad[:, 0], np.full(len(quad), depth.shape[0] - 1.0)], axis=1)
+    strip = cv2.convexHull(np.concatenate([quad, below]).astype(np.float32))[:, 0]
+    plane = robust_plane(_quad_points(depth, camera, strip), 500)
+    if plane is None or np.max(np.abs(points[have] @ plane[:3] + plane[3])) > p["plane_tol_mm"]:
+        return None
+    out = points.copy()
+    for i in np.flatnonzero(~have):
+        out[i], t = marker_on_plane(camera, *pixels[i], plane, 0.5 * p["marker_diameter_mm"])
+        if not t > 0:
+            return None
+    return out, strip
+
+
+def _pose(
+    sol: Solution, region: np.ndarray, depth: np.ndarray, camera: Camera, p: dict[str, Any]
+) -> Solution:
+    """Alg. 4 lines 11-17 on a convex quad whose markers all have floor points.
+
+    The floor plane is refined through the floor pixels inside ``region`` (K, 2) px.
+    """
+    points = sol.points
+    plane = _refine_plane(fit_plane(points), depth, camera, region)
     resid = points @ plane[:3] + plane[3]
     if np.max(np.abs(resid)) > p["plane_tol_mm"]:
         return replace(
@@ -614,19 +698,27 @@ def _refine_plane(
 
     Pixels more than 30 mm from the marker plane (objects, flying pixels) are left out.
     """
-    h, w = depth.shape
-    poly = np.zeros((h, w), np.uint8)
-    cv2.fillConvexPoly(poly, np.round(quad).astype(np.int32), 1)
-    rows, cols = np.nonzero((poly > 0) & (depth > 0))
-    if rows.size < 50:
+    pts = _quad_points(depth, camera, quad)
+    if len(pts) < 50:
         return plane
-    step = max(1, rows.size // 5000)
-    rows, cols = rows[::step], cols[::step]
-    pts = camera.backproject(np.stack([cols, rows], axis=1).astype(np.float64), depth[rows, cols])
     near = np.abs(pts @ plane[:3] + plane[3]) < 30.0
     if near.sum() < 50:
         return plane
     return fit_plane(pts[near])
+
+
+def _quad_points(depth: np.ndarray, camera: Camera, quad: np.ndarray) -> np.ndarray:
+    """Camera points (N, 3) of the valid depth pixels inside a convex polygon (cyclic).
+
+    At most about 5000, evenly subsampled.
+    """
+    h, w = depth.shape
+    poly = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(poly, np.round(quad).astype(np.int32), 1)
+    rows, cols = np.nonzero((poly > 0) & (depth > 0))
+    step = max(1, rows.size // 5000)
+    rows, cols = rows[::step], cols[::step]
+    return camera.backproject(np.stack([cols, rows], axis=1).astype(np.float64), depth[rows, cols])
 
 
 def _status_msg(hdr: Any, sol: Solution, n_found: int) -> CalibrationStatus:

@@ -241,3 +241,38 @@ def test_a_marker_revealed_after_it_was_found_is_not_found_again() -> None:
         assert np.min(np.hypot(*(rec.floor_pixels - w).T)) < 1.0
     assert rec.status == "Done"
     assert np.linalg.norm(0.5 * (rec.start + rec.end) - np.mean(pts, axis=0)) < 20.0
+
+
+def _without_depth_beyond(frames: list[RawFrame], z_mm: float) -> list[RawFrame]:
+    """The frames with no depth where the floor lies beyond ``z_mm`` (a grazing angle)."""
+    zfloor, _, _ = _floor()
+    out = []
+    for f in frames:
+        depth = np.where(zfloor > z_mm, 0, f.depth).astype(np.uint16)
+        out.append(RawFrame(header=f.header, ir=f.ir, depth=depth))
+    return out
+
+
+def test_far_markers_without_floor_depth_are_placed_on_the_floor_seen_nearer() -> None:
+    # A camera low and far from the walkway (the simulator's ``low+far``: 0.5 m high, the
+    # walking line 3.5 m away) sees the far floor at a grazing angle and gets no depth
+    # there: the far markers' rings were empty and the calibration said Replace Markers,
+    # so no walk of the session had gait figures. The floor from the quad down to the
+    # image's bottom edge gives the plane, and each far marker is placed where its ray
+    # meets it.
+    _, plane, up = _floor()
+    pts = [_point_on_floor(x, z, up) for x, z in QUAD]
+    statuses, records = _run(_without_depth_beyond(_frames(pts), 3000.0))
+    rec = records[0]
+    assert rec.status == "Done", rec.message
+    assert "marker(s) [3, 4] placed on the floor" in rec.message
+    for p in pts:
+        assert np.min(np.linalg.norm(rec.floor_points - p, axis=1)) < 10.0
+    assert np.degrees(np.arccos(np.clip(rec.floor_plane[:3] @ plane[:3], -1, 1))) < 0.5
+    assert rec.floor_plane[3] == pytest.approx(HEIGHT, abs=10.0)
+    centre = 0.5 * (rec.start + rec.end)
+    assert np.linalg.norm(centre - np.mean(pts, axis=0)) < 20.0
+    # With fewer than two markers' depths to check that floor against, nothing is placed.
+    statuses, records = _run(_without_depth_beyond(_frames(pts), 2000.0))
+    assert records[0].status == "Replace Markers"
+    assert "no floor depth at marker(s) [1, 2, 3, 4]" in records[0].message
