@@ -572,7 +572,7 @@ def solve(
             )
         filled, strip = found
         sol = _pose(replace(sol, points=filled), strip, depth, camera, p)
-        note = f"; marker(s) {missing} placed on the floor seen inside the quad (no depth there)"
+        note = f"; marker(s) {missing} placed on the floor seen nearer (no depth there)"
         return replace(sol, message=sol.message + note)
     return _pose(sol, pixels[order], depth, camera, p)
 
