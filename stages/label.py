@@ -988,13 +988,15 @@ def label_frame(
             st = _end_shoulder(st, frame_idx)
         elif sho_blob >= 0:
             z = top[sho_blob]
-            if abs(z[1] - kx[1]) > p["far_sho_mm"]:
+            if z[1] < kx[1] - p["far_sho_mm"]:
                 # The blob is the shoulder but its depth is not: a layer taken from an arm
                 # in front (134 mm nearer, a low camera 3.5 m away). Taken into the track,
                 # it gave it a depth velocity of 1 m/s toward the camera, the shoulder was
                 # then "clearly deeper" than the track (the far shoulder's rule above), and
                 # the track was lost for six frames, every label with it. The trunk cannot
-                # move that far in depth within a frame: the track keeps its own depth.
+                # come that much nearer within a frame: the track keeps its own depth. (Not
+                # the other way: a blob that deep is the track's own shoulder after a drift
+                # toward the camera, which the update must undo; deeper still, the far one.)
                 z = np.array([z[0], kx[1], z[2]])
             kx, kP = _kf_update(kx, kP, z, dt)
             st = replace(st, sho_x=kx, sho_cov=kP, sho_missed=0)

@@ -68,6 +68,36 @@ def test_a_depth_drift_of_the_track_does_not_make_its_shoulder_the_far_one() -> 
     assert st.sho_missed == 1
 
 
+def test_a_shoulder_blob_whose_depth_jumps_does_not_drag_the_track_off_its_shoulder() -> None:
+    # A low camera 3.5 m away (``low+far+k4a``, FlatFoot frame 257): the shoulder blob's
+    # depth, taken from an arm in front, jumped 134 mm toward the camera for one frame. The
+    # track took it, its depth velocity became -1 m/s, the real shoulder the next frame
+    # was "clearly deeper" than the track (the far shoulder's rule) and the track was lost
+    # for six frames, every label with it (a 20 deg knee error in the gap's Bezier).
+    geo = label.Geometry.from_model(None)
+    H = geo.sho_h
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    st = label.init(label.PARAMS.resolve({}))
+    v = 1350.0  # mm/s along the walk
+    x = np.array([3000.0, 0.0, H, v, 0.0, 0.0])
+    st = replace(
+        st,
+        trial="walk-01",
+        frame=10,
+        sho_x=x,
+        sho_cov=np.diag([15.0**2] * 3 + [300.0**2] * 3),
+        direction=1,
+        walked=True,
+    )
+    for k, depth in ((1, -134.0), (2, 30.0)):
+        blob = to_camera(np.array([x[0] + k * v / 30.0, depth, H]))
+        st, _ = label.label_frame(st, np.repeat(blob[None, None, :], 3, axis=1), 10 + k, ff, geo)
+        assert st.sho_missed == 0, k  # the shoulder's blob continues the track both times
+        if k == 1:  # the track kept its depth and depth velocity
+            assert abs(st.sho_x[1]) < 5.0 and abs(st.sho_x[4]) < 100.0
+    assert 0.0 < st.sho_x[1] < 30.0
+
+
 def test_far_sho_mm_is_declared_non_negative() -> None:
     with pytest.raises(ParameterError, match="far_sho_mm"):
         label.PARAMS.resolve({"far_sho_mm": -1.0})
