@@ -262,7 +262,7 @@ def test_far_markers_without_floor_depth_are_placed_on_the_floor_seen_nearer() -
     # meets it.
     _, plane, up = _floor()
     pts = [_point_on_floor(x, z, up) for x, z in QUAD]
-    statuses, records = _run(_without_depth_beyond(_frames(pts), 3000.0))
+    _, records = _run(_without_depth_beyond(_frames(pts), 3000.0))
     rec = records[0]
     assert rec.status == "Done", rec.message
     assert "marker(s) [3, 4] placed on the floor" in rec.message
@@ -273,6 +273,6 @@ def test_far_markers_without_floor_depth_are_placed_on_the_floor_seen_nearer() -
     centre = 0.5 * (rec.start + rec.end)
     assert np.linalg.norm(centre - np.mean(pts, axis=0)) < 20.0
     # With fewer than two markers' depths to check that floor against, nothing is placed.
-    statuses, records = _run(_without_depth_beyond(_frames(pts), 2000.0))
+    _, records = _run(_without_depth_beyond(_frames(pts), 2000.0))
     assert records[0].status == "Replace Markers"
     assert "no floor depth at marker(s) [1, 2, 3, 4]" in records[0].message
