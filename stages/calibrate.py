@@ -25,6 +25,12 @@ Departures from the paper (see docs/readme/labelling.md):
 - the floor plane is fitted through the markers, then refined with the valid floor depth
   pixels inside the marker quad (a least-squares plane through thousands of pixels is far
   less noisy than one through four markers);
+- a marker whose ring has no depth (the far floor at a grazing angle) is placed where its
+  ray meets the floor seen from the quad down to the image's edge, when at least two
+  markers have depth and agree with that floor (``_markers_on_walkway``); Alg. 4 would
+  ask for the markers to be replaced;
+- a new blob within the ring of a marker already found is that marker seen again, not the
+  next one;
 - the status tests (Move, Tilt, Pan) use the 3D floor frame with declared tolerances
   [A-4b]; the final record's status is ``Done`` whenever the calibration is geometrically
   usable (C markers, diagonals cross, plane fits), the residual camera pose is recorded in

@@ -993,7 +993,7 @@ def label_frame(
                 # in front (134 mm nearer, a low camera 3.5 m away). Taken into the track,
                 # it gave it a depth velocity of 1 m/s toward the camera, the shoulder was
                 # then "clearly deeper" than the track (the far shoulder's rule above), and
-                # the track was lost for six frames, every label with it. The trunk cannot
+                # the track was lost: seven frames without any label. The trunk cannot
                 # come that much nearer within a frame: the track keeps its own depth. (Not
                 # the other way: a blob that deep is the track's own shoulder after a drift
                 # toward the camera, which the update must undo; deeper still, the far one.)
