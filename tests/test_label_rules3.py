@@ -177,9 +177,9 @@ def test_a_track_restarted_near_an_end_without_a_move_labels_only_once_it_walks(
 
 
 def test_a_restarted_track_without_a_walkway_is_labelled_without_a_crash() -> None:
-    # A calibration without a usable floor (``low+far``: the far floor markers at a grazing
-    # angle have no depth, Replace Markers) leaves label the level-camera floor frame,
-    # whose walkway has no length. A shoulder track restarted without a move asked where
+    # A calibration without a usable floor (Replace Markers; found on ``low+far`` before
+    # calibrate placed markers without floor depth) leaves label the level-camera floor
+    # frame, whose walkway has no length. A shoulder track restarted without a move asked where
     # on the walkway it was (its position over the length): ZeroDivisionError, which
     # stops the stage. Without a walkway nobody is known to be mid-walkway, so the
     # restart is handled as one near an end.
