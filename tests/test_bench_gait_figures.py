@@ -52,9 +52,9 @@ def test_bench_gait_summarises_the_trials_signed_errors_beside_table_iv(
 
 
 def test_bench_gait_says_why_a_trial_gave_no_gait_events() -> None:
-    # A set-up whose calibration has no usable floor (Replace Markers: ``low+far`` before
-    # calibrate placed markers without floor depth, ``near+k4a``) gives empty results; the
-    # bench printed a row of dashes and nothing else.
+    # A set-up whose calibration has no usable floor (``low+far`` before calibrate placed
+    # markers without floor depth; ``near+k4a``, two floor markers out of view) gives empty
+    # results; the bench printed a row of dashes and nothing else.
     why = "no floor calibration: the calibration record says Replace Markers"
     per = {"walk-a": {"why_empty": [why]}, "walk-b": {"events": {}}, "walk-c": {"why_empty": []}}
     assert empty_trials(per) == [
