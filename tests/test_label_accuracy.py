@@ -13,6 +13,29 @@ from gaitflow.errors import ParameterError
 from gaitflow.evaluate_label import calibration_record, to_camera
 from gaitflow.markers import MARKER_INDEX
 
+WALK_V = 1350.0  # mm/s along the walk
+
+
+def _walking_track(
+    params: dict, depth_speed: float = 0.0
+) -> tuple[label.LabelState, label.Geometry, FloorFrame, np.ndarray]:
+    """(state, geometry, floor frame, shoulder track (6,)) in frame 10 of a subject walking
+    toward +a at WALK_V past a = 3000 mm, the track on the near shoulder at depth 0;
+    ``depth_speed`` is the track's velocity in depth, mm/s."""
+    geo = label.Geometry.from_model(None)
+    ff = FloorFrame.from_record(calibration_record(), 800.0)
+    x = np.array([3000.0, 0.0, geo.sho_h, WALK_V, depth_speed, 0.0])
+    st = replace(
+        label.init(label.PARAMS.resolve(params)),
+        trial="walk-01",
+        frame=10,
+        sho_x=x,
+        sho_cov=np.diag([15.0**2] * 3 + [300.0**2] * 3),
+        direction=1,
+        walked=True,
+    )
+    return st, geo, ff, x
+
 
 def _shoulder_frame(
     far_sho_mm: float, depth_speed: float = 0.0, depth_mm: float = 100.0
@@ -21,22 +44,9 @@ def _shoulder_frame(
     only shoulder-height blob is the far shoulder, 60 mm behind the prediction along the
     walk and ``depth_mm`` deeper than the track's last depth (inside the 150 mm gate).
     ``depth_speed`` is the track's velocity in depth, mm/s."""
-    geo = label.Geometry.from_model(None)
+    st, geo, ff, x = _walking_track({"far_sho_mm": far_sho_mm}, depth_speed)
     H = geo.sho_h
-    ff = FloorFrame.from_record(calibration_record(), 800.0)
-    st = label.init(label.PARAMS.resolve({"far_sho_mm": far_sho_mm}))
-    v = 1350.0  # mm/s along the walk
-    x = np.array([3000.0, 0.0, H, v, depth_speed, 0.0])
-    st = replace(
-        st,
-        trial="walk-01",
-        frame=10,
-        sho_x=x,
-        sho_cov=np.diag([15.0**2] * 3 + [300.0**2] * 3),
-        direction=1,
-        walked=True,
-    )
-    ahead = x[0] + v / 30.0
+    ahead = x[0] + WALK_V / 30.0
     blob = to_camera(np.array([ahead - 60.0, depth_mm, H]))
     pos = np.repeat(blob[None, None, :], 3, axis=1)  # (1 blob, 3 modes, 3)
     st, assign = label.label_frame(st, pos, 11, ff, geo)
@@ -72,25 +82,11 @@ def test_a_shoulder_blob_whose_depth_jumps_does_not_drag_the_track_off_its_shoul
     # A low camera 3.5 m away (``low+far+k4a``, FlatFoot frame 257): the shoulder blob's
     # depth, taken from an arm in front, jumped 134 mm toward the camera for one frame. The
     # track took it, its depth velocity became -1 m/s, the real shoulder the next frame
-    # was "clearly deeper" than the track (the far shoulder's rule) and the track was lost
-    # for six frames, every label with it (a 20 deg knee error in the gap's Bezier).
-    geo = label.Geometry.from_model(None)
-    H = geo.sho_h
-    ff = FloorFrame.from_record(calibration_record(), 800.0)
-    st = label.init(label.PARAMS.resolve({}))
-    v = 1350.0  # mm/s along the walk
-    x = np.array([3000.0, 0.0, H, v, 0.0, 0.0])
-    st = replace(
-        st,
-        trial="walk-01",
-        frame=10,
-        sho_x=x,
-        sho_cov=np.diag([15.0**2] * 3 + [300.0**2] * 3),
-        direction=1,
-        walked=True,
-    )
+    # was "clearly deeper" than the track (the far shoulder's rule) and the track was lost:
+    # seven frames without any label (a 20 deg knee error in the gap's Bezier).
+    st, geo, ff, x = _walking_track({})
     for k, depth in ((1, -134.0), (2, 30.0)):
-        blob = to_camera(np.array([x[0] + k * v / 30.0, depth, H]))
+        blob = to_camera(np.array([x[0] + k * WALK_V / 30.0, depth, geo.sho_h]))
         st, _ = label.label_frame(st, np.repeat(blob[None, None, :], 3, axis=1), 10 + k, ff, geo)
         assert st.sho_missed == 0, k  # the shoulder's blob continues the track both times
         if k == 1:  # the track kept its depth and depth velocity
