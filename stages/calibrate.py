@@ -576,11 +576,11 @@ def solve(
             return replace(
                 sol, status="Replace Markers", message=f"no floor depth at marker(s) {missing}"
             )
-        filled, strip = found
-        sol = _pose(replace(sol, points=filled), strip, depth, camera, p)
+        filled, floor = found
+        sol = _pose(replace(sol, points=filled), floor, p)
         note = f"; marker(s) {missing} placed on the floor seen nearer (no depth there)"
         return replace(sol, message=sol.message + note)
-    return _pose(sol, pixels[order], depth, camera, p)
+    return _pose(sol, _quad_points(depth, camera, pixels[order]), p)
 
 
 def _markers_on_walkway(
@@ -601,8 +601,8 @@ def _markers_on_walkway(
     then the plane through the valid depth pixels of the empty floor from the quad down to
     the image's bottom edge (the quad's columns), kept only when at least two markers have
     depth and lie within ``plane_tol_mm`` of it; each marker without depth is placed where
-    its ray meets it (:func:`marker_on_plane`). Returns (points, the strip's polygon (K, 2)
-    px, where the plane is refined), or None when that cannot be done.
+    its ray meets it (:func:`marker_on_plane`). Returns (points, the strip's floor pixels
+    (N, 3) mm, through which the plane is refined), or None when that cannot be done.
 
     The quad alone is not enough there: it spans a few hundred mm of depth, all of it near
     the grazing limit, whose last valid pixels lie about 10 mm below the floor, and a plane
@@ -614,7 +614,8 @@ def _markers_on_walkway(
         return None
     below = np.stack([quad[:, 0], np.full(len(quad), depth.shape[0] - 1.0)], axis=1)
     strip = cv2.convexHull(np.concatenate([quad, below]).astype(np.float32))[:, 0]
-    plane = robust_plane(_quad_points(depth, camera, strip), 500)
+    floor = _quad_points(depth, camera, strip)
+    plane = robust_plane(floor, 500)
     if plane is None or np.max(np.abs(points[have] @ plane[:3] + plane[3])) > p["plane_tol_mm"]:
         return None
     out = points.copy()
@@ -622,18 +623,17 @@ def _markers_on_walkway(
         out[i], t = marker_on_plane(camera, *pixels[i], plane, 0.5 * p["marker_diameter_mm"])
         if not t > 0:
             return None
-    return out, strip
+    return out, floor
 
 
-def _pose(
-    sol: Solution, region: np.ndarray, depth: np.ndarray, camera: Camera, p: dict[str, Any]
-) -> Solution:
+def _pose(sol: Solution, floor: np.ndarray, p: dict[str, Any]) -> Solution:
     """Alg. 4 lines 11-17 on a convex quad whose markers all have floor points.
 
-    The floor plane is refined through the floor pixels inside ``region`` (K, 2) px.
+    The floor plane is refined through ``floor`` (N, 3) mm, valid floor pixels in camera
+    space (:func:`_quad_points`).
     """
     points = sol.points
-    plane = _refine_plane(fit_plane(points), depth, camera, region)
+    plane = _refine_plane(fit_plane(points), floor)
     resid = points @ plane[:3] + plane[3]
     if np.max(np.abs(resid)) > p["plane_tol_mm"]:
         return replace(
@@ -697,14 +697,11 @@ def _pose(
     return replace(sol, status="Done", message="calibration done")
 
 
-def _refine_plane(
-    plane: np.ndarray, depth: np.ndarray, camera: Camera, quad: np.ndarray
-) -> np.ndarray:
-    """Refit the plane through the valid depth pixels inside the (cyclic) marker quad.
+def _refine_plane(plane: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Refit the plane through floor pixels ``pts`` (N, 3) mm (those of the marker quad).
 
     Pixels more than 30 mm from the marker plane (objects, flying pixels) are left out.
     """
-    pts = _quad_points(depth, camera, quad)
     if len(pts) < 50:
         return plane
     near = np.abs(pts @ plane[:3] + plane[3]) < 30.0
