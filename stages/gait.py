@@ -846,10 +846,22 @@ def _remember(state: GaitState, a: TrialAnalysis) -> tuple[Mapping[bytes, Any], 
     return (a.memo, *state.memo)[:MEMO_ANALYSES]
 
 
+def _window_frames(state: GaitState) -> int:
+    """``live_window_s`` in frames of the open trial, at its camera's rate (from its first
+    and last frame's index and capture time; the nominal 30 fps before two frames): a 15 fps
+    session's window is as long in seconds as a 30 fps one's."""
+    period = NOMINAL_PERIOD_S
+    if len(state.frames) >= 2:
+        a, b = state.frames[0].header, state.frames[-1].header
+        if b.frame > a.frame and b.capture_ns > a.capture_ns:
+            period = (b.capture_ns - a.capture_ns) / 1e9 / (b.frame - a.frame)
+    return max(1, round(state.params["live_window_s"] / period))
+
+
 def _series(state: GaitState) -> Mapping[str, gc.Resampled] | None:
     """What an analysis of all the trial's frames may extend: the last one's resampled
     markers; none for a trial longer than the live window (the series would be heavy)."""
-    if len(state.frames) > state.params["live_window_s"] * 30:
+    if len(state.frames) > _window_frames(state):
         return None
     return state.series if state.series is not None else {}
 
@@ -1021,7 +1033,7 @@ def after(state: GaitState) -> tuple[GaitState, list[Message]]:
     h = state.frames[-1].header
     # live events from the recent frames only (times stay on the trial's clock), so the
     # cost per frame does not grow with the trial
-    recent = state.frames[-int(state.params["live_window_s"] * 30) :]
+    recent = state.frames[-_window_frames(state) :]
     whole = len(recent) == n
     a = analyse(
         recent,

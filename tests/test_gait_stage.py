@@ -165,6 +165,21 @@ def test_an_endless_live_trial_is_closed_in_bounded_pieces(session):
     assert all(validation_errors(o.results) == [] for o in trials)
 
 
+@pytest.mark.parametrize("fps", [15.0, 30.0, 60.0])
+def test_the_live_window_is_as_long_in_seconds_at_any_frame_rate(session, fps):
+    """``live_window_s`` counts the open trial's frames at its own camera rate (a 15 fps
+    session's live event search looks as far back in time as a 30 fps one's)."""
+    _, name, frames, cal = session
+    state = gs.init(gs.PARAMS.resolve({"live_window_s": 2.0, "live_every": 0}))
+    for k, m in enumerate(frames[:40]):
+        ns = 10**12 + round(k * 1e9 / fps)
+        h = LabelledMarkers.make_header("cam0", name, k, ns, False)
+        m = LabelledMarkers(header=h, position=m.position, pixel=m.pixel, blob=m.blob)
+        state, _ = gs.SPEC.run(state, {"labelled": m, "calibration": cal})
+    assert len(state.frames) == 40
+    assert gs._window_frames(state) == round(2.0 * fps)
+
+
 def test_a_heel_label_on_the_other_heel_for_one_frame_is_dropped(session):
     """A heel label given for one frame to the other foot's heel (a labelling slip) would
     make a false contact; the foot-marker outlier filter drops that sample."""
