@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from gaitflow.bench.gait import TABLE_IV, empty_trials, table_iv_figures
+from gaitflow.bench.gait import TABLE_IV, cadence_error_pct, empty_trials, table_iv_figures
 from gaitflow.cli import main
 
 
@@ -49,6 +49,18 @@ def test_bench_gait_summarises_the_trials_signed_errors_beside_table_iv(
         row = next(r for r in text.splitlines() if r.startswith(f"{key} error %, mean ± SD"))
         assert f"{s[f'{key}_mean_pct']:+.2f} ± {s[f'{key}_sd_pct']:.2f}" in row
         assert f"{mean:.2f} ± {sd:.2f}" in row
+    # the walk's cadence against the truth's, signed
+    assert math.isfinite(trial["cadence_err_pct"])
+    assert s["cadence_err_pct"] == pytest.approx(abs(trial["cadence_err_pct"]))
+    row = next(r for r in text.splitlines() if r.startswith("cadence error %, mean ± SD"))
+    assert f"{trial['cadence_err_pct']:+.2f}" in row
+
+
+def test_cadence_error_is_signed_and_missing_where_either_cadence_is() -> None:
+    assert cadence_error_pct(90.0, 120.0) == pytest.approx(-25.0)
+    assert cadence_error_pct(126.0, 120.0) == pytest.approx(5.0)
+    for ours, true in ((None, 120.0), (120.0, None), (float("nan"), 120.0), (120.0, 0.0)):
+        assert math.isnan(cadence_error_pct(ours, true))
 
 
 def test_bench_gait_says_why_a_trial_gave_no_gait_events() -> None:

@@ -409,6 +409,61 @@ def test_spatiotemporal_literal_contacts():
     assert st["speed_m_s"] == pytest.approx(1.0)
 
 
+def _strikes(*seq: tuple[str, float]) -> dict[str, list]:
+    """Stances with only a heel strike time, from (side, time) pairs."""
+    nan = float("nan")
+    out: dict[str, list] = {"L": [], "R": []}
+    for side, t in seq:
+        out[side].append(gc.Contact(side, t, nan, t + 0.6, nan, t, nan))
+    return out
+
+
+def test_cadence_counts_the_steps_of_a_missed_heel_strike():
+    # 120 steps/min; R's strike at 1.5 s was missed. A mean of the intervals (0.5, 0.5, 1.0,
+    # 0.5) said 96 steps/min
+    walk = _strikes(("L", 0.0), ("R", 0.5), ("L", 1.0), ("L", 2.0), ("R", 2.5))
+    assert gc.steps_between_strikes([walk]) == pytest.approx((5.0, 2.5))
+    assert gc.spatiotemporal(walk)["cadence_steps_per_min"] == pytest.approx(120.0)
+    # two strikes missed in a row (R 2.5, L 3.0): an interval of three steps between opposite
+    # feet
+    walk = _strikes(*[(s, 0.5 * k) for k, s in enumerate("LRLRL")], ("R", 3.5), ("L", 4.0))
+    assert gc.steps_between_strikes([walk]) == pytest.approx((8.0, 4.0))
+    # the same in a pass pooled with another, whose strikes were all found
+    other = _strikes(*[(s, 10.0 + 0.5 * k) for k, s in enumerate("RLRL")])
+    pooled = gc.pool_spatiotemporal(
+        [walk, other], [gc.spatiotemporal(walk), gc.spatiotemporal(other)]
+    )
+    assert pooled["cadence_steps_per_min"] == pytest.approx(120.0)
+
+
+def test_cadence_does_not_count_a_heel_strike_seen_twice():
+    # R strikes at 0.0 and again (falsely) 0.25 s later: no stride is that short. Counting
+    # the same-foot interval as a stride said 6 steps in 1.0 s
+    walk = _strikes(("R", 0.0), ("R", 0.25), ("L", 0.5), ("R", 1.0))
+    assert gc.steps_between_strikes([walk]) == pytest.approx((2.0, 1.0))
+    # a pass where only one foot's strikes were seen: each interval is a stride
+    alone = _strikes(("L", 0.0), ("L", 1.1), ("L", 2.2))
+    assert gc.steps_between_strikes([alone]) == pytest.approx((4.0, 2.2))
+    # a strike seen twice in one pass, counted with another pass's steps
+    twice = _strikes(("R", 0.0), ("R", 0.2), ("L", 0.55))
+    back = _strikes(("R", 10.0), ("L", 10.55), ("R", 11.1))
+    assert gc.steps_between_strikes([twice, back]) == pytest.approx((3.0, 1.65))
+    # most strikes missed: a stride, then a stride and three steps between opposite feet.
+    # A step time from the opposite feet alone (1.5 s) made both strides "seen twice"
+    out = _strikes(("R", 1.0), ("R", 2.0))
+    back = _strikes(("R", 6.5), ("R", 7.5), ("L", 9.0))
+    assert gc.steps_between_strikes([out, back]) == pytest.approx((7.0, 3.5))
+
+
+def test_cadence_of_an_asymmetric_gait_counts_each_step_once():
+    # hemiparetic timing: steps of 0.4 and 0.8 s alternate (100 steps/min); the long step is
+    # twice the short one but not twice the mean, so it stays one step
+    walk = _strikes(("L", 0.0), ("R", 0.4), ("L", 1.2), ("R", 1.6), ("L", 2.4))
+    assert gc.steps_between_strikes([walk]) == pytest.approx((4.0, 2.4))
+    assert gc.spatiotemporal(walk)["cadence_steps_per_min"] == pytest.approx(100.0)
+    assert gc.steps_between_strikes([_strikes(("L", 0.0))]) == pytest.approx((0.0, 0.0))
+
+
 def test_step_needs_the_contralateral_strike_after_the_previous_own_strike():
     # R's strike at 1.5 s was missed and its stance seen as one long flat range: L's strike
     # at 2.0 s must not pair with R's footprint from 0.5 s (a step plus a stride, 1500 mm)

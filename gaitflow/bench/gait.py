@@ -25,7 +25,9 @@ Figures (paper's values beside them where it gives one):
   matched to the detected one with the same heel strike(s) (within ``MATCH_S``); its error
   is (detected - true) / true. Printed as Table IV prints it, mean ± standard deviation of
   the signed errors over all matched ones (:func:`table_iv_figures`), and beside that the
-  mean absolute error, a stricter figure the paper does not give.
+  mean absolute error, a stricter figure the paper does not give;
+- % error of each walk's cadence against the truth's (120 / mean stride time), signed per
+  walk, then its mean ± SD and mean absolute over the walks (no paper figure).
 """
 
 from __future__ import annotations
@@ -257,7 +259,19 @@ def score_trial(
             doc["knee_flexion_deg"][side],
         )
     out.update(matched_errors(truth_summary.get("spatiotemporal", {}), doc.get("cycles", [])))
+    out["cadence_err_pct"] = cadence_error_pct(
+        doc.get("spatiotemporal", {}).get("cadence_steps_per_min"),
+        truth_summary.get("spatiotemporal", {}).get("mean", {}).get("cadence_steps_per_min"),
+    )
     return out
+
+
+def cadence_error_pct(ours: Any, true: Any) -> float:
+    """Signed % error of a trial's cadence against the truth's (120 / mean stride time);
+    NaN where either is missing (a results ``null``)."""
+    if ours is None or true is None or not (np.isfinite(ours) and np.isfinite(true) and true):
+        return float("nan")
+    return 100.0 * (float(ours) - float(true)) / float(true)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -521,6 +535,7 @@ def run(args: argparse.Namespace) -> int:
                 float(np.mean(hs)) if hs.size else float("nan"),
                 float(np.mean(to)) if to.size else float("nan"),
                 *(table_iv_figures(sc[key])["abs"] for key in TABLE_IV),
+                sc["cadence_err_pct"],
             ]
         )
     knee_all = [v for s in per.values() for v in (s["knee_rmse_L"], s["knee_rmse_R"])]
@@ -547,6 +562,9 @@ def run(args: argparse.Namespace) -> int:
         summary[f"{key}_sd_pct"] = fig["sd"]
         summary[f"{key}_err_pct"] = fig["abs"]
         summary[f"{key}_matched"] = fig["n"]
+    cad = table_iv_figures([s["cadence_err_pct"] for s in per.values()])
+    summary["cadence_mean_pct"], summary["cadence_sd_pct"] = cad["mean"], cad["sd"]
+    summary["cadence_err_pct"] = cad["abs"]
     cols = [
         "trial",
         "label%",
@@ -560,10 +578,11 @@ def run(args: argparse.Namespace) -> int:
         "stride%",
         "stance%",
         "swing%",
+        "cadence%",
     ]
     t1 = format_table(
         f"bench gait (level={args.level}, seed={args.seed}): per trial (knee RMSE in deg; "
-        "step, stride, stance, swing: mean absolute % error)",
+        "step, stride, stance, swing: mean absolute % error; cadence: signed % error)",
         cols,
         rows,
     )
@@ -614,6 +633,15 @@ def run(args: argparse.Namespace) -> int:
             ]
         )
         srows.append([f"{key} error %, mean absolute", summary[f"{key}_err_pct"], "-", "-"])
+    srows.append(
+        [
+            "cadence error %, mean ± SD of trials",
+            plus_minus(summary["cadence_mean_pct"], summary["cadence_sd_pct"], signed=True),
+            "-",
+            "-",
+        ]
+    )
+    srows.append(["cadence error %, mean absolute", summary["cadence_err_pct"], "-", "-"])
     t2 = format_table(
         "summary: ours beside the paper (Table II/IV, Vicon comparison Fig. 12)",
         ["figure", "ours", "paper", "goal"],
