@@ -1706,29 +1706,28 @@ def steps_between_strikes(
     -------
     (steps, seconds); (0, 0) without two heel strikes in one pass.
     """
-    dts, sames = [], []
-    for contacts in passes:
-        strikes = sorted(
-            (c.heel_strike, side)
-            for side in SIDES
-            for c in contacts.get(side, [])
-            if _finite(c.heel_strike)
+    pairs = [
+        (b[0] - a[0], a[1] == b[1])
+        for contacts in passes
+        for a, b in itertools.pairwise(
+            sorted(
+                (c.heel_strike, side)
+                for side in SIDES
+                for c in contacts.get(side, [])
+                if _finite(c.heel_strike)
+            )
         )
-        dts += [b[0] - a[0] for a, b in itertools.pairwise(strikes)]
-        sames += [a[1] == b[1] for a, b in itertools.pairwise(strikes)]
-    dt, same = np.array(dts, dtype=float), np.array(sames, dtype=bool)
+    ]
+    dt = np.array([d for d, _ in pairs], dtype=float)
+    same = np.array([s for _, s in pairs], dtype=bool)
     if not dt.sum() > 0:
         return 0.0, 0.0
-    step_s = float(dt.sum() / np.where(same, 2.0, 1.0).sum())
-    n = np.zeros_like(dt)
+    n = np.where(same, 2.0, 1.0)  # the least counts
     for _ in range(2):
-        if not step_s > 0:
-            return 0.0, 0.0
-        r = dt / step_s
+        r = dt / (dt.sum() / n.sum())
         n = np.where(
             same, 2.0 * np.round(r / 2.0), np.maximum(1.0, 2.0 * np.round((r - 1.0) / 2.0) + 1.0)
         )
-        step_s = float(dt.sum() / n.sum()) if n.sum() > 0 else 0.0
     return float(n.sum()), float(dt.sum())
 
 
